@@ -1,0 +1,1 @@
+"""physfuse estimator: reading logs, the smoother, streaming and outputs."""
