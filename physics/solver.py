@@ -2,15 +2,19 @@
 
     min_{f: φ(f) ≥ 0}  ½ fᵀ(A + R) f + fᵀ(v⁻ − v*)                                    (11)
 
-Objects are visited in row order. A scalar object (friction loss: box, limit or frictionless
-contact: f ≥ 0) is minimized exactly, as in classic PGS. A frictional contact takes one
-projected-gradient step in the metric t·R_b, whose projection is Algorithm 5 (R_b satisfies
-eq. 17 and the scale t does not move the projection):
+Objects are visited in row order; each update minimizes (11) over one object's rows with the
+others fixed. With H = A + R and c_b = (H f + v⁻ − v*)_b − H_bb f_b the rest of the gradient:
 
-    f_b ← ConeProject(f_b − (t R_b)⁻¹ g_b),   g_b = ((A + R) f + v⁻ − v*)_b,
-    t = λ_max(R_b^-½ (A + R)_bb R_b^-½)      (so t·R_b ⪰ (A + R)_bb: every step lowers (11))
+- scalar objects (friction loss: box; limit, frictionless contact: f ≥ 0) as in classic PGS:
+  f_i ← clamp(−c_i / H_ii);
+- a frictional contact, exactly when the block minimizer is sticking or separating:
+  x = −H_bb⁻¹ c_b if x lies inside the cone, else 0 if c_b lies in the dual cone
+  {s: s_0 ≥ ‖(μ_j s_j)‖}; otherwise (sliding) projected-gradient steps in the metric t·R_b,
+  whose projection is Algorithm 5 (R_b satisfies eq. 17; the scale t does not move it):
+      f_b ← ConeProject(f_b − (t R_b)⁻¹ g_b),   t = λ_max(R_b^-½ H_bb R_b^-½),
+  so that t·R_b ⪰ H_bb and every step lowers (11).
 
-Each step decreases the strictly convex objective and the constraints separate by object, so
+Every update lowers the strictly convex objective and the constraints separate by object, so
 the sweeps converge to the unique minimizer.
 """
 
@@ -59,8 +63,7 @@ def solve_gpgs(
             g = H[rows] @ f + b[rows]
             old = f[rows].copy()
             if block.kind == Kind.CONTACT:
-                y = old - g / (block.t * block.r)
-                new, _ = cone_project(y, block.mu, block.r[0], block.rF)
+                new = block.minimize(g - block.H @ old, old)
             else:
                 new = old - g / block.Hii
                 if block.kind == Kind.FRICTION:
@@ -77,18 +80,35 @@ def solve_gpgs(
 
 
 class _Block:
-    """Per-object constants of a GPGS sweep."""
+    """Per-object constants of a GPGS sweep and the contact block update."""
 
-    __slots__ = ("Hii", "kind", "mu", "r", "rF", "rows", "t")
+    __slots__ = ("H", "Hii", "H_inv", "kind", "mu", "r", "rF", "rows", "t")
+
+    SLIDING_STEPS = 4  # projected-gradient steps per sweep for a sliding contact
 
     def __init__(self, obj: ConstraintObject, H: np.ndarray, R: np.ndarray) -> None:
         self.kind = obj.kind
         self.rows = obj.rows
         self.mu = obj.mu
         if obj.kind == Kind.CONTACT:
+            self.H = H[obj.rows, obj.rows]
+            self.H_inv = np.linalg.inv(self.H)
             self.r = R[obj.rows]
             self.rF = float(self.r[1:].mean())
             s = 1.0 / np.sqrt(self.r)
-            self.t = float(np.linalg.eigvalsh(s[:, None] * H[obj.rows, obj.rows] * s)[-1])
+            self.t = float(np.linalg.eigvalsh(s[:, None] * self.H * s)[-1])
         else:
             self.Hii = H[obj.start, obj.start]
+
+    def minimize(self, c: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """Lower ½ xᵀ H_bb x + xᵀ c over the cone, starting from x (exact unless sliding)."""
+        mu = self.mu
+        x_free = -self.H_inv @ c
+        if x_free[0] >= 0 and x_free[0] ** 2 >= np.sum((x_free[1:] / mu) ** 2):
+            return x_free  # sticking
+        if c[0] >= 0 and c[0] ** 2 >= np.sum((mu * c[1:]) ** 2):
+            return np.zeros_like(x)  # separating: 0 satisfies the KKT conditions
+        step = 1.0 / (self.t * self.r)
+        for _ in range(self.SLIDING_STEPS):
+            x, _ = cone_project(x - step * (self.H @ x + c), mu, self.r[0], self.rF)
+        return x
