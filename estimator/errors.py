@@ -11,3 +11,7 @@ class ConfigError(PhysfuseError):
 
 class LogError(PhysfuseError):
     """A log cannot be read; the message names the file, topic or field."""
+
+
+class MissingTopicError(LogError):
+    """A topic the config marks as required is absent from the log or has no usable sample."""

@@ -1,0 +1,528 @@
+"""The config that maps a robot log's topics onto the MuJoCo model.
+
+A config is a TOML file (`configs/<name>.toml`). It names the model and, for every stream the
+estimator uses, the log topic, how its messages are timed, which model element (body, site,
+joint, actuator) each entry belongs to, and the stream's noise. It is validated when loaded:
+every error is a `ConfigError` whose message names the file, the key path
+(`streams.mocap_torso.body`), the bad value and the allowed values or valid model names.
+
+Schema (see `configs/README.md` for a worked example):
+
+    model = "humanoid"        # bundled model name, or MJCF path (relative to the config file)
+    description = "..."       # optional
+
+    [streams.<name>]          # one table per stream; <name> is how results refer to it
+    type = "pose"             # pose | tf | rigid_bodies | markers | imu | joint_state |
+                              # command | wrench
+    topic = "/mocap/torso"    # the log topic
+    stamp = "header"          # "header" (header.stamp; default) or "log" (the recorder's
+                              # receive time; the only choice for Float64MultiArray)
+    time_offset_ns = 0        # t = stamp + time_offset_ns (int64 ns)
+    required = true           # a missing required topic is an error (default true)
+    noise = { ... }           # per-kind keys below; omitted keys take the defaults
+
+    type-specific keys:
+      pose          body = "torso" | site = "torso_marker"   (PoseStamped, TransformStamped)
+      tf            child_frame_id = "torso_link", body | site, parent_frame_id = "world"
+                    (optional filter)                       (TFMessage, TransformStamped)
+      rigid_bodies  bodies = { rigid_body_name = "body", ... }   (mocap4r2 RigidBodies)
+      markers       markers = { marker_name_or_index = "site", ... }   (mocap4r2 Markers)
+      imu           site = "imu", quat_site_sensor = [w, x, y, z]  (IMU axes in the site
+                    frame; default identity)                 (sensor_msgs/Imu)
+      joint_state   joints = "model" (message names are model joint names) or
+                    joints = { ros_name = "model_joint", ... }   (sensor_msgs/JointState)
+      command       actuators = ["a0", "a1", ...]  (Float64MultiArray: data[i] drives a_i), or
+                    actuators = { ros_joint = "actuator", ... } with
+                    field = "positions" | "velocities" | "accelerations" | "effort"
+                    (JointTrajectory: the first point's field)
+      wrench        site = "ft_site", quat_site_sensor = [w, x, y, z]   (WrenchStamped)
+
+Noise keys per kind (standard deviations per sample unless named a walk; SI units, joint
+quantities in the joint's own units, rad or m):
+
+    pose, tf, rigid_bodies   position_std_m, orientation_std_rad
+    markers                  position_std_m
+    imu                      gyro_std [rad/s], accel_std [m/s²], orientation_std_rad,
+                             gyro_bias_walk [rad/s/√s], accel_bias_walk [m/s²/√s]
+    joint_state              position_std, velocity_std, effort_std
+    command                  std [actuator ctrl units]
+    wrench                   force_std [N], torque_std [N·m]
+
+Each stream is resolved to `elements` (model names, the output column order) and `sources`
+(the matching names in the messages), so the reader handles every kind the same way.
+Other subsystems may keep their own top-level tables in the same file: pass their names as
+`extra_sections` and they come back unvalidated in `Config.sections`.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import mujoco
+
+from estimator.errors import ConfigError
+from physics.errors import PhysicsError
+from physics.model import MODEL_DIR, bundled_models, load_model
+
+KINDS = ("pose", "tf", "rigid_bodies", "markers", "imu", "joint_state", "command", "wrench")
+STAMPS = ("header", "log")
+TRAJECTORY_FIELDS = ("positions", "velocities", "accelerations", "effort")
+
+# Noise keys and their defaults, per kind.
+NOISE_DEFAULTS: Mapping[str, Mapping[str, float]] = {
+    "pose": {"position_std_m": 1e-3, "orientation_std_rad": 1e-2},
+    "tf": {"position_std_m": 1e-3, "orientation_std_rad": 1e-2},
+    "rigid_bodies": {"position_std_m": 1e-3, "orientation_std_rad": 1e-2},
+    "markers": {"position_std_m": 1e-3},
+    "imu": {
+        "gyro_std": 5e-3,
+        "accel_std": 5e-2,
+        "orientation_std_rad": 2e-2,
+        "gyro_bias_walk": 1e-4,
+        "accel_bias_walk": 1e-3,
+    },
+    "joint_state": {"position_std": 1e-3, "velocity_std": 1e-2, "effort_std": 1e-1},
+    "command": {"std": 1e-2},
+    "wrench": {"force_std": 1.0, "torque_std": 0.05},
+}
+
+_COMMON_KEYS = ("type", "topic", "stamp", "time_offset_ns", "required", "noise")
+_KIND_KEYS: Mapping[str, tuple[str, ...]] = {
+    "pose": ("body", "site"),
+    "tf": ("child_frame_id", "parent_frame_id", "body", "site"),
+    "rigid_bodies": ("bodies",),
+    "markers": ("markers",),
+    "imu": ("site", "quat_site_sensor"),
+    "joint_state": ("joints",),
+    "command": ("actuators", "field"),
+    "wrench": ("site", "quat_site_sensor"),
+}
+_TOP_KEYS = ("model", "description", "streams")
+_IDENTITY_WXYZ = (1.0, 0.0, 0.0, 0.0)
+
+_OBJ_TYPES: Mapping[str, int] = {
+    "body": mujoco.mjtObj.mjOBJ_BODY,
+    "site": mujoco.mjtObj.mjOBJ_SITE,
+    "joint": mujoco.mjtObj.mjOBJ_JOINT,
+    "actuator": mujoco.mjtObj.mjOBJ_ACTUATOR,
+}
+
+
+@dataclass(frozen=True)
+class StreamConfig:
+    """One stream: a topic, how it is timed, and the model elements its entries belong to.
+
+    `elements[i]` (a model `element_type` name) is fed by the message entry named
+    `sources[i]`: a joint name in a JointState, a rigid-body name, a marker name or index, a
+    TF child frame, or the array index ("0", "1", ...) in a Float64MultiArray. `sources` is
+    None for kinds whose message holds a single entry (pose, imu, wrench).
+    """
+
+    name: str
+    kind: str
+    topic: str
+    stamp: str
+    time_offset_ns: int
+    required: bool
+    element_type: str
+    elements: tuple[str, ...]
+    sources: tuple[str, ...] | None
+    element_keys: tuple[str, ...]  # the config key path that names each element
+    noise: Mapping[str, float]
+    quat_site_sensor: tuple[float, float, float, float] = _IDENTITY_WXYZ
+    field: str | None = None  # command from JointTrajectory: which point field
+    parent_frame_id: str | None = None  # tf: accept only transforms from this frame
+
+
+@dataclass(frozen=True)
+class Config:
+    """A loaded, validated config. `streams` keeps the file's order."""
+
+    path: Path
+    model: str
+    model_path: Path
+    description: str
+    streams: Mapping[str, StreamConfig]
+    sections: Mapping[str, Any] = field(default_factory=dict)
+
+    def load_model(self) -> mujoco.MjModel:
+        """The MuJoCo model the config maps onto."""
+        return load_model(self.model_path)
+
+    def streams_on(self, topic: str) -> tuple[StreamConfig, ...]:
+        """The streams fed by `topic` (several streams may share one, e.g. /tf)."""
+        return tuple(s for s in self.streams.values() if s.topic == topic)
+
+    @property
+    def topics(self) -> tuple[str, ...]:
+        """Every topic a stream reads, in stream order, without repeats."""
+        return tuple(dict.fromkeys(s.topic for s in self.streams.values()))
+
+
+@dataclass(frozen=True)
+class NameCheck:
+    """Whether one model name a config uses exists in the model."""
+
+    key: str  # config key path, e.g. "streams.joints.joints.l_knee"
+    element_type: str  # "body" | "site" | "joint" | "actuator"
+    name: str
+    found: bool
+    valid: tuple[str, ...]  # the names the model has for that element type
+
+
+def load_config(
+    path: str | Path,
+    *,
+    extra_sections: Iterable[str] = (),
+    check_names: bool = True,
+) -> Config:
+    """Load and validate a config file.
+
+    `extra_sections`: top-level tables owned by other subsystems, returned raw in
+    `Config.sections`. With `check_names` (the default) every body, site, joint and actuator
+    name must exist in the model; `physfuse inspect` turns it off to list them with
+    `check_model_names` instead.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise ConfigError(f"{path}: not valid TOML: {err}") from err
+    return _Parser(path, tuple(extra_sections), check_names).parse(raw)
+
+
+def check_model_names(config: Config, model: mujoco.MjModel) -> tuple[NameCheck, ...]:
+    """One `NameCheck` per model name the config's streams use, in stream order."""
+    valid = {kind: _names(model, kind) for kind in _OBJ_TYPES}
+    checks = []
+    for stream in config.streams.values():
+        names = valid[stream.element_type]
+        for key, name in zip(stream.element_keys, stream.elements, strict=True):
+            checks.append(NameCheck(key, stream.element_type, name, name in names, names))
+    return tuple(checks)
+
+
+def _names(model: mujoco.MjModel, element_type: str) -> tuple[str, ...]:
+    count = {
+        "body": model.nbody,
+        "site": model.nsite,
+        "joint": model.njnt,
+        "actuator": model.nu,
+    }[element_type]
+    obj = _OBJ_TYPES[element_type]
+    return tuple(mujoco.mj_id2name(model, obj, i) or "" for i in range(count))
+
+
+def _scalar_joints(model: mujoco.MjModel) -> tuple[str, ...]:
+    """Hinge and slide joints: the ones a JointState can report."""
+    scalar = (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
+    return tuple(
+        mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, i) or ""
+        for i in range(model.njnt)
+        if model.jnt_type[i] in scalar
+    )
+
+
+class _Parser:
+    """Validates the raw TOML tree; every error names the file and the key path."""
+
+    def __init__(self, path: Path, extra_sections: tuple[str, ...], check_names: bool):
+        self.path = path
+        self.extra_sections = extra_sections
+        self.check_names = check_names
+
+    def error(self, key: str, message: str) -> ConfigError:
+        return ConfigError(f"{self.path}: {key}: {message}")
+
+    # -- top level -------------------------------------------------------------------------
+    def parse(self, raw: dict[str, Any]) -> Config:
+        self.unknown_keys(raw, "", (*_TOP_KEYS, *self.extra_sections))
+        if "model" not in raw:
+            raise self.error("model", "missing; name a bundled model or an MJCF file")
+        model_value = self.string(raw["model"], "model")
+        model_path = self.resolve_model(model_value)
+        try:
+            model = load_model(model_path)
+        except PhysicsError as err:
+            raise self.error("model", str(err)) from err
+        description = self.string(raw.get("description", ""), "description")
+        streams_raw = self.table(raw.get("streams", {}), "streams")
+        if not streams_raw:
+            raise self.error("streams", "no streams; add at least one [streams.<name>] table")
+        streams = {
+            name: self.stream(name, self.table(table, f"streams.{name}"), model)
+            for name, table in streams_raw.items()
+        }
+        sections = {name: raw[name] for name in self.extra_sections if name in raw}
+        config = Config(
+            path=self.path,
+            model=model_value,
+            model_path=model_path,
+            description=description,
+            streams=MappingProxyType(streams),
+            sections=MappingProxyType(sections),
+        )
+        if self.check_names:
+            bad = [c for c in check_model_names(config, model) if not c.found]
+            if bad:
+                raise ConfigError(
+                    f"{self.path}: "
+                    + "; ".join(
+                        f"{c.key}: unknown {c.element_type} {c.name!r}; valid "
+                        f"{c.element_type} names: {', '.join(n for n in c.valid if n)}"
+                        for c in bad
+                    )
+                )
+        return config
+
+    def resolve_model(self, value: str) -> Path:
+        candidate = Path(value)
+        if not candidate.is_absolute():
+            candidate = self.path.parent / candidate
+        if candidate.suffix == ".xml":
+            if not candidate.is_file():
+                raise self.error("model", f"MJCF file {str(candidate)!r} not found")
+            return candidate
+        if value in bundled_models():
+            return MODEL_DIR / f"{value}.xml"
+        raise self.error(
+            "model",
+            f"{value!r} is neither an MJCF file (*.xml) nor a bundled model; "
+            f"bundled models: {', '.join(bundled_models())}",
+        )
+
+    # -- one stream ------------------------------------------------------------------------
+    def stream(self, name: str, raw: dict[str, Any], model: mujoco.MjModel) -> StreamConfig:
+        key = f"streams.{name}"
+        if "type" not in raw:
+            raise self.error(f"{key}.type", f"missing; one of {', '.join(KINDS)}")
+        kind = self.choice(raw["type"], f"{key}.type", KINDS)
+        self.unknown_keys(raw, key, (*_COMMON_KEYS, *_KIND_KEYS[kind]))
+        if "topic" not in raw:
+            raise self.error(f"{key}.topic", "missing; the log topic this stream reads")
+        topic = self.string(raw["topic"], f"{key}.topic")
+        if not topic:
+            raise self.error(f"{key}.topic", "empty topic name")
+        offset = raw.get("time_offset_ns", 0)
+        if isinstance(offset, bool) or not isinstance(offset, int):
+            raise self.error(
+                f"{key}.time_offset_ns", f"expected an integer (ns), got {self.show(offset)}"
+            )
+        required = raw.get("required", True)
+        if not isinstance(required, bool):
+            raise self.error(
+                f"{key}.required", f"expected true or false, got {self.show(required)}"
+            )
+        noise = self.noise(raw.get("noise", {}), f"{key}.noise", kind)
+        mapping = getattr(self, f"map_{kind}")(raw, key, model)
+        has_header = not (kind == "command" and mapping["field"] is None)
+        stamp = self.choice(
+            raw.get("stamp", "header" if has_header else "log"), f"{key}.stamp", STAMPS
+        )
+        if stamp == "header" and not has_header:
+            raise self.error(
+                f"{key}.stamp",
+                "'header' is not possible: a Float64MultiArray command has no header; use 'log'",
+            )
+        return StreamConfig(
+            name=name,
+            kind=kind,
+            topic=topic,
+            stamp=stamp,
+            time_offset_ns=offset,
+            required=required,
+            noise=MappingProxyType(noise),
+            **mapping,
+        )
+
+    def map_pose(self, raw: dict[str, Any], key: str, model: mujoco.MjModel) -> dict[str, Any]:
+        return self.body_or_site(raw, key) | {"sources": None}
+
+    def map_tf(self, raw: dict[str, Any], key: str, model: mujoco.MjModel) -> dict[str, Any]:
+        if "child_frame_id" not in raw:
+            raise self.error(f"{key}.child_frame_id", "missing; the TF frame that tracks the body")
+        child = self.string(raw["child_frame_id"], f"{key}.child_frame_id")
+        parent = raw.get("parent_frame_id")
+        if parent is not None:
+            parent = self.string(parent, f"{key}.parent_frame_id")
+        return self.body_or_site(raw, key) | {"sources": (child,), "parent_frame_id": parent}
+
+    def map_rigid_bodies(
+        self, raw: dict[str, Any], key: str, model: mujoco.MjModel
+    ) -> dict[str, Any]:
+        return self.name_table(raw, key, "bodies", "body", "rigid body name")
+
+    def map_markers(self, raw: dict[str, Any], key: str, model: mujoco.MjModel) -> dict[str, Any]:
+        return self.name_table(raw, key, "markers", "site", "marker name or index")
+
+    def map_imu(self, raw: dict[str, Any], key: str, model: mujoco.MjModel) -> dict[str, Any]:
+        return self.sensor_site(raw, key)
+
+    def map_wrench(self, raw: dict[str, Any], key: str, model: mujoco.MjModel) -> dict[str, Any]:
+        return self.sensor_site(raw, key)
+
+    def map_joint_state(
+        self, raw: dict[str, Any], key: str, model: mujoco.MjModel
+    ) -> dict[str, Any]:
+        joints = raw.get("joints")
+        if joints == "model":
+            names = _scalar_joints(model)
+            if not names:
+                raise self.error(f"{key}.joints", "the model has no hinge or slide joints")
+            return {
+                "element_type": "joint",
+                "elements": names,
+                "sources": names,
+                "element_keys": tuple(f"{key}.joints" for _ in names),
+            }
+        if isinstance(joints, str):
+            raise self.error(
+                f"{key}.joints",
+                f'expected "model" or a table {{ ros_name = "model_joint" }}, got {joints!r}',
+            )
+        return self.name_table(raw, key, "joints", "joint", "JointState name")
+
+    def map_command(self, raw: dict[str, Any], key: str, model: mujoco.MjModel) -> dict[str, Any]:
+        actuators = raw.get("actuators")
+        if actuators is None:
+            raise self.error(
+                f"{key}.actuators",
+                "missing; a list of actuator names (Float64MultiArray) or a table "
+                '{ ros_joint = "actuator" } (JointTrajectory)',
+            )
+        if isinstance(actuators, list):
+            if "field" in raw:
+                raise self.error(
+                    f"{key}.field",
+                    "only for JointTrajectory commands (actuators given as a table); "
+                    "a Float64MultiArray's data drives the actuators directly",
+                )
+            if not actuators:
+                raise self.error(f"{key}.actuators", "empty list")
+            names = tuple(self.string(a, f"{key}.actuators[{i}]") for i, a in enumerate(actuators))
+            return {
+                "element_type": "actuator",
+                "elements": names,
+                "sources": tuple(str(i) for i in range(len(names))),
+                "element_keys": tuple(f"{key}.actuators[{i}]" for i in range(len(names))),
+                "field": None,
+            }
+        if "field" not in raw:
+            raise self.error(
+                f"{key}.field",
+                "missing; a JointTrajectory command needs the point field that drives the "
+                f"actuators: one of {', '.join(TRAJECTORY_FIELDS)}",
+            )
+        trajectory_field = self.choice(raw["field"], f"{key}.field", TRAJECTORY_FIELDS)
+        return self.name_table(raw, key, "actuators", "actuator", "JointTrajectory joint name") | {
+            "field": trajectory_field
+        }
+
+    # -- shared pieces ---------------------------------------------------------------------
+    def body_or_site(self, raw: dict[str, Any], key: str) -> dict[str, Any]:
+        given = [k for k in ("body", "site") if k in raw]
+        if len(given) != 1:
+            raise self.error(
+                f"{key}.body",
+                'give exactly one of body = "<model body>" or site = "<model site>"',
+            )
+        element_type = given[0]
+        name = self.string(raw[element_type], f"{key}.{element_type}")
+        return {
+            "element_type": element_type,
+            "elements": (name,),
+            "element_keys": (f"{key}.{element_type}",),
+        }
+
+    def sensor_site(self, raw: dict[str, Any], key: str) -> dict[str, Any]:
+        if "site" not in raw:
+            raise self.error(f"{key}.site", "missing; the model site the sensor is mounted at")
+        name = self.string(raw["site"], f"{key}.site")
+        quat = self.quaternion(
+            raw.get("quat_site_sensor", _IDENTITY_WXYZ), f"{key}.quat_site_sensor"
+        )
+        return {
+            "element_type": "site",
+            "elements": (name,),
+            "sources": None,
+            "element_keys": (f"{key}.site",),
+            "quat_site_sensor": quat,
+        }
+
+    def name_table(
+        self, raw: dict[str, Any], key: str, table_key: str, element_type: str, what: str
+    ) -> dict[str, Any]:
+        full = f"{key}.{table_key}"
+        if table_key not in raw:
+            raise self.error(full, f'missing; a table {{ <{what}> = "<model {element_type}>" }}')
+        table = self.table(raw[table_key], full)
+        if not table:
+            raise self.error(full, f"empty; map at least one {what} to a model {element_type}")
+        sources = tuple(table)
+        elements = tuple(self.string(v, f"{full}.{k}") for k, v in table.items())
+        return {
+            "element_type": element_type,
+            "elements": elements,
+            "sources": sources,
+            "element_keys": tuple(f"{full}.{k}" for k in sources),
+        }
+
+    def noise(self, raw: Any, key: str, kind: str) -> dict[str, float]:
+        table = self.table(raw, key)
+        defaults = NOISE_DEFAULTS[kind]
+        self.unknown_keys(table, key, tuple(defaults))
+        noise = dict(defaults)
+        for name, value in table.items():
+            ok = isinstance(value, int | float) and not isinstance(value, bool)
+            if not ok or not math.isfinite(value) or value <= 0:
+                raise self.error(
+                    f"{key}.{name}", f"expected a positive finite number, got {self.show(value)}"
+                )
+            noise[name] = float(value)
+        return noise
+
+    def quaternion(self, value: Any, key: str) -> tuple[float, float, float, float]:
+        ok = (
+            isinstance(value, list | tuple)
+            and len(value) == 4
+            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+        )
+        if not ok or abs(math.hypot(*value) - 1.0) > 1e-6:
+            raise self.error(
+                key, f"expected a unit quaternion [w, x, y, z], got {self.show(value)}"
+            )
+        w, x, y, z = (float(v) for v in value)
+        return (w, x, y, z)
+
+    def unknown_keys(self, raw: dict[str, Any], key: str, allowed: tuple[str, ...]) -> None:
+        for name in raw:
+            if name not in allowed:
+                full = f"{key}.{name}" if key else name
+                raise self.error(full, f"unknown key; allowed keys: {', '.join(allowed)}")
+
+    def table(self, value: Any, key: str) -> dict[str, Any]:
+        if not isinstance(value, dict):
+            raise self.error(key, f"expected a table, got {self.show(value)}")
+        return value
+
+    def string(self, value: Any, key: str) -> str:
+        if not isinstance(value, str):
+            raise self.error(key, f"expected a string, got {self.show(value)}")
+        return value
+
+    def choice(self, value: Any, key: str, allowed: tuple[str, ...]) -> str:
+        if value not in allowed:
+            raise self.error(key, f"{self.show(value)} is not one of {', '.join(allowed)}")
+        return str(value)
+
+    @staticmethod
+    def show(value: Any) -> str:
+        return f"{value!r} ({type(value).__name__})"

@@ -1,0 +1,258 @@
+"""`physfuse inspect LOG [--config CONFIG] [--json OUT.json]`: what is in a robot log.
+
+Run it before estimating. Per topic: message type, count, rate (median interval), time span,
+largest gap, bad samples by reason, and the sender's clock against the recorder's (median
+header.stamp − log time). With a config: what each stream extracted, and a checklist of
+every mapped topic, body, site, joint and actuator — found in the log and the model, or
+MISSING. A truncated log gets a warning line and is still reported. Exit status 0 when
+everything required is present, 2 (with one error line) otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from estimator.config import Config, NameCheck, check_model_names, load_config
+from estimator.errors import ConfigError, MissingTopicError
+from estimator.logs import ros2_types
+from estimator.logs.measurements import BadSampleCounts, TopicStats
+from estimator.logs.reader import Log, read_log
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("log", type=Path, help="MCAP file or rosbag2 folder")
+    parser.add_argument(
+        "--config", type=Path, help="config TOML: also check every mapped topic and name"
+    )
+    parser.add_argument("--json", type=Path, metavar="OUT.json", help="write the report as JSON")
+
+
+@dataclass(frozen=True)
+class CheckItem:
+    """One checklist line: a mapped topic or name, where it was looked for, and the outcome."""
+
+    what: str  # e.g. "topic /imu", "model body 'torso'", "joint 'knee_joint' in /joint_states"
+    key: str  # config key path
+    found: bool
+    required: bool
+    detail: str = ""
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load_config(args.config, check_names=False) if args.config else None
+    log = read_log(args.log, config, decode_all=True, require=False)
+    checks = _checklist(log, config) if config is not None else []
+
+    lines = _report(log, config, checks)
+    print("\n".join(lines))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(_as_json(log, config, checks), indent=2))
+
+    failed = [c for c in checks if c.required and not c.found]
+    if config is not None and failed:
+        model_names = [c for c in failed if c.what.startswith("model ")]
+        summary = "; ".join(f"{c.what} ({c.key}) {c.detail or 'missing'}" for c in failed)
+        error = ConfigError if len(model_names) == len(failed) else MissingTopicError
+        raise error(f"{len(failed)} required item(s) missing: {summary}")
+    return 0
+
+
+# -- the checklist -----------------------------------------------------------------------------
+def _checklist(log: Log, config: Config) -> list[CheckItem]:
+    model_checks = {c.key: c for c in check_model_names(config, config.load_model())}
+    items: list[CheckItem] = []
+    for name, stream in config.streams.items():
+        topic = log.topics.get(stream.topic)
+        present = topic is not None and topic.count > 0
+        key = f"streams.{name}.topic"
+        items.append(
+            CheckItem(
+                f"topic {stream.topic}",
+                key,
+                present,
+                stream.required,
+                "" if present else "not in the log",
+            )
+        )
+        if present and topic is not None:
+            accepted = ros2_types.ACCEPTED_TYPES[stream.kind]
+            if stream.kind == "command":
+                accepted = (
+                    (ros2_types.FLOAT64_MULTI_ARRAY,)
+                    if stream.field is None
+                    else (ros2_types.JOINT_TRAJECTORY,)
+                )
+            ok_type = topic.msg_type in accepted
+            items.append(
+                CheckItem(
+                    f"type of {stream.topic}",
+                    f"streams.{name}.type",
+                    ok_type,
+                    stream.required,
+                    ""
+                    if ok_type
+                    else f"is {topic.msg_type or 'unknown'}, expected {' or '.join(accepted)}",
+                )
+            )
+            usable = len(log.measurements[name]) > 0
+            if ok_type:
+                bad = log.measurements[name].bad
+                items.append(
+                    CheckItem(
+                        f"usable samples on {stream.topic}",
+                        f"streams.{name}",
+                        usable,
+                        stream.required,
+                        "" if usable else f"none of {topic.count} ({_bad_text(bad)})",
+                    )
+                )
+        seen = log.names_seen.get(name, frozenset())
+        for i, (element_key, element) in enumerate(
+            zip(stream.element_keys, stream.elements, strict=True)
+        ):
+            check: NameCheck = model_checks[element_key]
+            items.append(
+                CheckItem(
+                    f"model {stream.element_type} {element!r}",
+                    element_key,
+                    check.found,
+                    True,
+                    ""
+                    if check.found
+                    else f"not in the model; valid: {', '.join(n for n in check.valid if n)}",
+                )
+            )
+            if stream.sources is not None and present:
+                source = stream.sources[i]
+                what = _source_label(stream.kind, stream.field, source)
+                source_key = (
+                    f"streams.{name}.child_frame_id" if stream.kind == "tf" else element_key
+                )
+                items.append(
+                    CheckItem(
+                        f"{what} in {stream.topic}",
+                        source_key,
+                        source in seen,
+                        stream.required,
+                        "" if source in seen else "never in the log",
+                    )
+                )
+    return items
+
+
+def _source_label(kind: str, field: str | None, source: str) -> str:
+    if kind == "command" and field is None:
+        return f"array entry {source}"
+    return {
+        "joint_state": "joint",
+        "command": "trajectory joint",
+        "rigid_bodies": "rigid body",
+        "markers": "marker",
+        "tf": "TF frame",
+    }[kind] + f" {source!r}"
+
+
+# -- the text report ---------------------------------------------------------------------------
+def _report(log: Log, config: Config | None, checks: list[CheckItem]) -> list[str]:
+    topics = list(log.topics.values())
+    total = sum(t.count for t in topics)
+    starts = [t.span_ns[0] for t in topics if t.span_ns]
+    ends = [t.span_ns[1] for t in topics if t.span_ns]
+    t0 = min(starts) if starts else 0
+    span = (max(ends) - t0) / 1e9 if ends else 0.0
+    lines = [
+        f"log: {log.source}",
+        f"  {len(topics)} topics, {total} messages, {span:.3f} s of log time",
+    ]
+    lines += [f"WARNING: {w}" for w in log.warnings]
+    lines.append("")
+    w_topic = max([len("topic"), *(len(s.topic) for s in topics)])
+    w_type = max([len("type"), *(len(s.msg_type or "(no schema)") for s in topics)])
+    header = (
+        f"{'topic':<{w_topic}}  {'type':<{w_type}} {'msgs':>7} {'rate Hz':>8} {'start s':>8} "
+        f"{'span s':>8} {'max gap ms':>10} {'at s':>7} {'stamp-log ms':>12}  bad samples"
+    )
+    lines += [header, "-" * len(header)]
+    for s in topics:
+        gap = s.largest_gap
+        offset = s.clock_offset_ns
+        first, last = s.span_ns or (t0, t0)
+        lines.append(
+            f"{s.topic:<{w_topic}}  {(s.msg_type or '(no schema)'):<{w_type}} {s.count:>7} "
+            f"{s.rate_hz:>8.1f} {(first - t0) / 1e9:>8.3f} {(last - first) / 1e9:>8.3f} "
+            f"{(gap[0] / 1e6 if gap else 0.0):>10.2f} "
+            f"{((gap[1] - t0) / 1e9 if gap else 0.0):>7.3f} "
+            f"{(f'{offset / 1e6:.2f}' if offset is not None else '-'):>12}  {_bad_text(s.bad)}"
+        )
+    offsets = {s.topic: s.clock_offset_ns for s in topics if s.clock_offset_ns is not None}
+    if len(offsets) >= 2:
+        lo = min(offsets, key=lambda k: offsets[k] or 0.0)
+        hi = max(offsets, key=lambda k: offsets[k] or 0.0)
+        lo_ms, hi_ms = (offsets[lo] or 0.0) / 1e6, (offsets[hi] or 0.0) / 1e6
+        lines += [
+            "",
+            "clock offsets between streams (median header.stamp - log time): from "
+            f"{lo_ms:.2f} ms ({lo}) to {hi_ms:.2f} ms ({hi}), {hi_ms - lo_ms:.2f} ms apart",
+        ]
+    if config is None:
+        return lines
+    lines += [
+        "",
+        f"config: {config.path} (model {config.model})",
+        f"{'stream':<20} {'type':<13} {'topic':<28} {'samples':>8}  skipped",
+    ]
+    for name, stream in config.streams.items():
+        m = log.measurements[name]
+        lines.append(
+            f"{name:<20} {stream.kind:<13} {stream.topic:<28} {len(m):>8}  {_bad_text(m.bad)}"
+        )
+    lines += ["", "checklist:"]
+    for c in checks:
+        status = "found" if c.found else ("MISSING" if c.required else "missing (optional)")
+        detail = f": {c.detail}" if c.detail else ""
+        lines.append(f"  {status:<18} {c.what}  [{c.key}]{detail}")
+    return lines
+
+
+def _bad_text(bad: BadSampleCounts) -> str:
+    parts = [f"{k}={v}" for k, v in bad.as_dict().items() if v]
+    return " ".join(parts) if parts else "-"
+
+
+# -- JSON ---------------------------------------------------------------------------------------
+def _topic_json(s: TopicStats) -> dict[str, Any]:
+    gap = s.largest_gap
+    return {
+        "topic": s.topic,
+        "type": s.msg_type,
+        "count": s.count,
+        "rate_hz": s.rate_hz,
+        "first_log_time_ns": s.span_ns[0] if s.span_ns else None,
+        "last_log_time_ns": s.span_ns[1] if s.span_ns else None,
+        "largest_gap_ns": gap[0] if gap else None,
+        "largest_gap_at_ns": gap[1] if gap else None,
+        "clock_offset_ns": s.clock_offset_ns,
+        "bad": s.bad.as_dict(),
+    }
+
+
+def _as_json(log: Log, config: Config | None, checks: list[CheckItem]) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "log": log.source,
+        "truncated": log.truncated,
+        "warnings": list(log.warnings),
+        "topics": [_topic_json(s) for s in log.topics.values()],
+    }
+    if config is not None:
+        out["config"] = str(config.path)
+        out["streams"] = {
+            name: {"samples": len(m), "bad": m.bad.as_dict()}
+            for name, m in log.measurements.items()
+        }
+        out["checklist"] = [asdict(c) for c in checks]
+    return out

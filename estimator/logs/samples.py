@@ -1,0 +1,313 @@
+"""From raw MCAP messages to per-stream samples: decode, map onto the model, check, count.
+
+The one pipeline shared by the file reader and the byte-stream reader. For each message:
+decode the CDR bytes with mcap_ros2 (schema from the log), turn it into `Record`s
+(`decode.py`), then for every stream on its topic select the configured entries in the
+config's element order, rotate sensor axes into the site frame, time it
+(`t = header.stamp or log_time, + time_offset_ns`), and accept it or count why not:
+
+- `unknown_type`: the topic's message type is not one the stream reads, or has no schema;
+- `undecodable`: the bytes do not decode;
+- `wrong_length`: array lengths disagree (JointState, JointTrajectory, a Float64MultiArray
+  whose length is not the number of actuators);
+- `unknown_name`: none of the stream's names (joints, bodies, markers) is in the message;
+- `nan`: a used field is NaN or ±Inf;
+- `duplicate_time` / `backwards_time`: not later than the stream's previous accepted sample.
+
+A skipped message is only counted; the stream continues. A TF stream silently ignores
+transforms of other frames (a /tf topic carries many). Per topic, the same checks run on the
+message alone (no config) and feed `TopicStats`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import mujoco
+import numpy as np
+from mcap_ros2.decoder import DecoderFactory
+
+from estimator.config import Config, StreamConfig
+from estimator.logs import ros2_types
+from estimator.logs.decode import DECODERS, TRAJECTORY, BadSampleError, Record, non_finite, stamp_ns
+from estimator.logs.measurements import BadSampleCounts, Sample, TopicStats
+from estimator.logs.source import RawMessage
+
+_IDENTITY = (1.0, 0.0, 0.0, 0.0)
+
+
+class SampleExtractor:
+    """Feed raw messages in log order; get accepted samples back, and counts at the end.
+
+    config: the streams to extract (None: topic statistics only).
+    decode_all: decode every topic, not only the config's, so that `topic_stats` has header
+        stamps and message-level bad counts everywhere (what `physfuse inspect` shows).
+    keep_times: keep every message's times for `topic_stats` (memory grows with the log);
+        without, topics keep only counts (a long-running live stream).
+    """
+
+    def __init__(self, config: Config | None, *, decode_all: bool = False, keep_times: bool = True):
+        self.config = config
+        self.decode_all = decode_all
+        self.keep_times = keep_times
+        self._streams: dict[str, list[_StreamState]] = {}
+        if config is not None:
+            for stream in config.streams.values():
+                self._streams.setdefault(stream.topic, []).append(_StreamState(stream))
+        self._topics: dict[str, _TopicState] = {}
+        self._decoders: dict[tuple[Any, ...], Callable[[bytes], Any] | None] = {}
+
+    def feed(self, raw: RawMessage) -> list[Sample]:
+        """The samples `raw` contributes (usually 0 or 1 per stream on its topic)."""
+        topic = self._topics.get(raw.topic)
+        if topic is None:
+            topic = self._topics[raw.topic] = _TopicState(raw.msg_type, self.keep_times)
+        topic.n_messages += 1
+        if self.keep_times:
+            topic.log_times.append(raw.log_time_ns)
+        streams = self._streams.get(raw.topic, ())
+        if not streams and not self.decode_all:
+            return []
+        try:
+            records = self._decode(raw, topic)
+        except BadSampleError as bad:
+            topic.count(bad.reason)
+            for state in streams:
+                state.count(bad.reason)
+            return []
+        if records is None:  # decodable but of a type without a record decoder
+            for state in streams:
+                state.count("unknown_type")
+            return []
+        topic.check(records, raw.log_time_ns)
+        samples: list[Sample] = []
+        for state in streams:
+            samples.extend(state.samples(raw, records))
+        return samples
+
+    def bad_counts(self) -> dict[str, BadSampleCounts]:
+        """Per config stream: the messages it skipped, by reason."""
+        return {s.cfg.name: s.frozen_counts() for states in self._streams.values() for s in states}
+
+    def names_seen(self) -> dict[str, frozenset[str]]:
+        """Per config stream: which of its source names (joints, frames, ...) the log has."""
+        return {s.cfg.name: frozenset(s.seen) for states in self._streams.values() for s in states}
+
+    def topic_stats(self, declared: Mapping[str, str] | None = None) -> dict[str, TopicStats]:
+        """Per topic (plus `declared` topics without messages), sorted by name."""
+        declared = declared or {}
+        names = sorted(set(self._topics) | set(declared))
+        return {
+            name: (
+                self._topics[name].stats(name)
+                if name in self._topics
+                else _TopicState(declared[name], keep_times=False).stats(name)
+            )
+            for name in names
+        }
+
+    def _decode(self, raw: RawMessage, topic: _TopicState) -> tuple[Record, ...] | None:
+        """Records of a message; None if its type has no record decoder (stamp still taken)."""
+        decoder = self._decoder(raw)
+        if decoder is None:
+            raise BadSampleError("unknown_type", f"no ROS 2 schema for {raw.msg_type or 'it'}")
+        try:
+            msg = decoder(raw.data)
+        except Exception as err:  # any failure inside the CDR parser means bad bytes
+            raise BadSampleError("undecodable", str(err)) from err
+        topic.decoded = True
+        to_records = DECODERS.get(raw.msg_type)
+        if to_records is None:
+            header = getattr(msg, "header", None)
+            if header is not None and hasattr(header, "stamp") and topic.keep_times:
+                topic.stamps.append((stamp_ns(header), raw.log_time_ns))
+            return None
+        try:
+            return to_records(msg)
+        except (AttributeError, TypeError, ValueError) as err:  # fields not as the type says
+            raise BadSampleError("undecodable", str(err)) from err
+
+    def _decoder(self, raw: RawMessage) -> Callable[[bytes], Any] | None:
+        schema = raw.schema
+        if schema is None:
+            return None
+        key = (schema.name, schema.encoding, schema.data, raw.message_encoding)
+        if key not in self._decoders:
+            try:
+                decoder = DecoderFactory().decoder_for(raw.message_encoding, schema)
+            except Exception:  # a schema text mcap_ros2 cannot parse
+                decoder = None
+            self._decoders[key] = decoder
+        return self._decoders[key]
+
+
+class _TopicState:
+    """Message-level statistics of one topic (no config involved)."""
+
+    def __init__(self, msg_type: str, keep_times: bool):
+        self.msg_type = msg_type
+        self.keep_times = keep_times
+        self.n_messages = 0
+        self.log_times: list[int] = []
+        self.stamps: list[tuple[int, int]] = []  # (header stamp, log time)
+        self.counts = dict.fromkeys(BadSampleCounts.reasons(), 0)
+        self.last: dict[str, int] = {}  # per TF child frame ('' for other types)
+        self.decoded = False
+
+    def count(self, reason: str) -> None:
+        self.counts[reason] += 1
+
+    def check(self, records: tuple[Record, ...], log_time_ns: int) -> None:
+        stamped = [r for r in records if r.stamp_ns is not None]
+        if stamped and self.keep_times:
+            self.stamps.append((stamped[0].stamp_ns or 0, log_time_ns))
+        if any(non_finite(r) for r in records):
+            self.count("nan")
+            return
+        keyed = len(records) != 1 or self.msg_type in (
+            ros2_types.TF_MESSAGE,
+            ros2_types.TRANSFORM_STAMPED,
+        )
+        for r in stamped:
+            key = r.names[0] if keyed and r.names else ""
+            t = (r.stamp_ns or 0) + r.delay_ns
+            last = self.last.get(key)
+            if last is not None and t == last:
+                self.count("duplicate_time")
+            elif last is not None and t < last:
+                self.count("backwards_time")
+            else:
+                self.last[key] = t
+
+    def stats(self, topic: str) -> TopicStats:
+        stamps = np.array(self.stamps, dtype=np.int64).reshape(-1, 2)
+        return TopicStats(
+            topic=topic,
+            msg_type=self.msg_type,
+            count=self.n_messages,
+            log_time_ns=np.array(self.log_times, dtype=np.int64),
+            stamp_ns=stamps[:, 0].copy(),
+            stamp_log_time_ns=stamps[:, 1].copy(),
+            bad=BadSampleCounts(**self.counts),
+            decoded=self.decoded,
+        )
+
+
+class _StreamState:
+    """One config stream: maps records onto its elements and keeps its time order."""
+
+    def __init__(self, cfg: StreamConfig):
+        self.cfg = cfg
+        accepted = ros2_types.ACCEPTED_TYPES[cfg.kind]
+        if cfg.kind == "command":  # a list of actuators reads arrays, a table trajectories
+            accepted = (
+                (ros2_types.FLOAT64_MULTI_ARRAY,)
+                if cfg.field is None
+                else (ros2_types.JOINT_TRAJECTORY,)
+            )
+        self.accepted = accepted
+        self.columns: list[int] | slice = (
+            [TRAJECTORY.index(cfg.field)] if cfg.field is not None else slice(None)
+        )
+        self.rotation: np.ndarray | None = None
+        self.quat_sensor_site = np.zeros(4)
+        if cfg.quat_site_sensor != _IDENTITY:
+            q = np.array(cfg.quat_site_sensor)
+            self.rotation = np.zeros(9)
+            mujoco.mju_quat2Mat(self.rotation, q)
+            self.rotation = self.rotation.reshape(3, 3)  # R_site_sensor
+            mujoco.mju_negQuat(self.quat_sensor_site, q)
+        self.counts = dict.fromkeys(BadSampleCounts.reasons(), 0)
+        self.last_t: int | None = None
+        self.seen: set[str] = set()
+
+    def count(self, reason: str) -> None:
+        self.counts[reason] += 1
+
+    def frozen_counts(self) -> BadSampleCounts:
+        return BadSampleCounts(**self.counts)
+
+    def samples(self, raw: RawMessage, records: tuple[Record, ...]) -> list[Sample]:
+        if raw.msg_type not in self.accepted:
+            self.count("unknown_type")
+            return []
+        if self.cfg.kind == "tf":
+            child, parent = (
+                self.cfg.sources[0] if self.cfg.sources else "",
+                self.cfg.parent_frame_id,
+            )
+            records = tuple(
+                r
+                for r in records
+                if r.names[0] == child and (parent is None or r.frame_id == parent)
+            )
+        out = []
+        for record in records:
+            try:
+                values = self.row(record)
+            except BadSampleError as bad:
+                self.count(bad.reason)
+                continue
+            base = record.stamp_ns if self.cfg.stamp == "header" else raw.log_time_ns
+            t = (base or 0) + record.delay_ns + self.cfg.time_offset_ns
+            if self.last_t is not None and t <= self.last_t:
+                self.count("duplicate_time" if t == self.last_t else "backwards_time")
+                continue
+            self.last_t = t
+            out.append(Sample(self.cfg.name, t, raw.log_time_ns, values))
+        return out
+
+    def row(self, record: Record) -> np.ndarray:
+        """(E, K) values of the stream's elements from one record."""
+        cfg = self.cfg
+        n_elements = len(cfg.elements)
+        if cfg.sources is None or cfg.kind == "tf":
+            index = np.zeros(1, dtype=np.intp)  # the record's only entry
+            if not len(record.names):
+                raise BadSampleError("wrong_length", "empty message")
+        else:
+            if cfg.kind == "command" and cfg.field is None and len(record.names) != n_elements:
+                raise BadSampleError(
+                    "wrong_length", f"{len(record.names)} values for {n_elements} actuators"
+                )
+            lookup = {name: i for i, name in enumerate(record.names)}
+            index = np.array([lookup.get(s, -1) for s in cfg.sources], dtype=np.intp)
+            self.seen.update(s for s, i in zip(cfg.sources, index, strict=True) if i >= 0)
+            if (index < 0).all():
+                raise BadSampleError("unknown_name", "none of the mapped names is in the message")
+        if cfg.kind == "tf" or cfg.sources is None:
+            self.seen.add(record.names[0])
+        found = index >= 0
+        values = np.full((n_elements, record.values[:, self.columns].shape[1]), np.nan)
+        values[found] = record.values[index[found]][:, self.columns]
+        if record.present is not None:
+            present = np.zeros(values.shape, dtype=bool)
+            present[found] = record.present[index[found]][:, self.columns]
+            if not present.any():
+                raise BadSampleError("wrong_length", "the message carries none of the used fields")
+        else:
+            present = np.broadcast_to(found[:, None], values.shape)
+        if (present & ~np.isfinite(values)).any():
+            raise BadSampleError("nan", "NaN or Inf in a used field")
+        if self.rotation is not None:
+            self.rotate(values[0])
+        return values
+
+    def rotate(self, v: np.ndarray) -> None:
+        """Sensor axes → site axes, in place: v_site = R_site_sensor v_sensor.
+
+        IMU orientation: q_ref_site = q_ref_sensor ⊗ conj(q_site_sensor).
+        """
+        rot = self.rotation
+        assert rot is not None
+        if self.cfg.kind == "imu":
+            if np.isfinite(v[0:4]).all():
+                q = np.empty(4)
+                mujoco.mju_mulQuat(q, v[0:4], self.quat_sensor_site)
+                v[0:4] = q
+            v[4:7] = rot @ v[4:7]
+            v[7:10] = rot @ v[7:10]
+        else:  # wrench: force, torque
+            v[0:3] = rot @ v[0:3]
+            v[3:6] = rot @ v[3:6]
