@@ -13,6 +13,7 @@ from estimator.errors import PhysfuseError
 # name -> (module path, help); modules expose `add_arguments(parser)` and `run(args) -> int`.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "reproduce": ("physics.reproduce.cli", "reproduce the paper's figures (benchmarks)"),
+    "inspect": ("estimator.inspect_cmd", "topics, rates, gaps and bad samples of a robot log"),
 }
 
 
