@@ -137,7 +137,32 @@ def constraint_space(m: mujoco.MjModel, d: mujoco.MjData, softness: Softness) ->
     Jv = J @ d.qvel if nv else np.zeros(nefc)
     x = d.efc_pos - d.efc_margin
     vstar = Jv - h * (B * Jv + K * x)
+    vstar -= h * _jdot_v(m, d, B, K, Jv, x)
     return ConstraintSpace(h, J, R, vstar, eta, efc_type, efc_id, tuple(objects), d.ne)
+
+
+def _jdot_v(
+    m: mujoco.MjModel, d: mujoco.MjData, B: np.ndarray, K: np.ndarray, Jv: np.ndarray, x: np.ndarray
+) -> np.ndarray:
+    """(nefc,) J̇v on connect and weld rows, 0 elsewhere.
+
+    MuJoCo (≥ 4.0) asks connect/weld constraints for J a + J̇ v = a_ref, a refinement of eq. 24
+    that keeps anchors together on curved paths. J̇v is a Phase-I kinematic term like c(q, v);
+    MuJoCo computes it in mj_referenceConstraint (mj_Jdotv, not in the Python API), so it is
+    read back as the difference between eq. 24's a_ref and MuJoCo's efc_aref on those rows.
+    """
+    jdot_v = np.zeros(d.nefc)
+    rows = np.flatnonzero(d.efc_type[: d.nefc] == _T.mjCNSTR_EQUALITY)
+    rows = rows[np.isin(m.eq_type[d.efc_id[rows]], _CURVED_EQUALITIES)]
+    if rows.size:
+        mujoco.mj_referenceConstraint(m, d)
+        imp = d.efc_KBIP[rows, 2]
+        aref_eq24 = -d.efc_KBIP[rows, 1] * Jv[rows] - d.efc_KBIP[rows, 0] * imp * x[rows]
+        jdot_v[rows] = aref_eq24 - d.efc_aref[rows]
+    return jdot_v
+
+
+_CURVED_EQUALITIES = [int(mujoco.mjtEq.mjEQ_CONNECT), int(mujoco.mjtEq.mjEQ_WELD)]
 
 
 def _dense_jacobian(m: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:

@@ -48,11 +48,18 @@ class NativeDynamics(Dynamics):
         qvel: np.ndarray,
         ctrl: np.ndarray | None = None,
         qfrc_applied: np.ndarray | None = None,
+        warmstart: np.ndarray | None = None,
         **solver: float,
     ) -> ForwardResult:
-        """mj_forward with the solver chosen by `set_solver` (MuJoCo's Newton by default)."""
+        """mj_forward with the solver chosen by `set_solver` (MuJoCo's Newton by default).
+
+        warmstart: (nv,) initial guess for qacc (e.g. the previous step's or a previous
+        solve's); MuJoCo's Newton can stop early from a poor guess, restarting it from its own
+        answer converges it to machine precision.
+        """
         m, d, h = self.model, self.data, self.h
         self._set_state(qpos=qpos, qvel=qvel, ctrl=ctrl, qfrc_applied=qfrc_applied)
+        d.qacc_warmstart[:] = 0.0 if warmstart is None else warmstart
         mujoco.mj_forward(m, d)
         iterations = int(d.solver_niter[0])
         converged = iterations < m.opt.iterations

@@ -92,7 +92,7 @@ def test_projection_is_idempotent_feasible_and_optimal(d: int) -> None:
         mu, r0, rF = random_cone(rng, d)
         r, _ = cone_weights(mu, r0, rF)
         y = rng.normal(size=d + 1)
-        x, branch = cone_project(y, mu, r0, rF)
+        x, _ = cone_project(y, mu, r0, rF)
         assert in_cone(x, mu)
         x2, _ = cone_project(x, mu, r0, rF)
         np.testing.assert_allclose(x2, x, rtol=1e-9, atol=1e-12)
