@@ -202,6 +202,7 @@ def load_config(
 def check_model_names(config: Config, model: mujoco.MjModel) -> tuple[NameCheck, ...]:
     """One `NameCheck` per model name the config's streams use, in stream order."""
     valid = {kind: _names(model, kind) for kind in _OBJ_TYPES}
+    valid["joint"] = _scalar_joints(model)  # a JointState reports hinge and slide joints
     checks = []
     for stream in config.streams.values():
         names = valid[stream.element_type]
@@ -223,11 +224,11 @@ def _names(model: mujoco.MjModel, element_type: str) -> tuple[str, ...]:
 
 def _scalar_joints(model: mujoco.MjModel) -> tuple[str, ...]:
     """Hinge and slide joints: the ones a JointState can report."""
-    scalar = (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
+    scalar = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
     return tuple(
         mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, i) or ""
         for i in range(model.njnt)
-        if model.jnt_type[i] in scalar
+        if int(model.jnt_type[i]) in scalar
     )
 
 

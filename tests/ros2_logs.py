@@ -499,3 +499,69 @@ def write_robot(folder: Path, config_text: str = SAMPLE_CONFIG) -> Path:
     path = folder / "config.toml"
     path.write_text(config_text)
     return path
+
+
+# -- a recording with injected bad samples ------------------------------------------------------
+def _replace(msg: Msg, fields: dict[str, Any]) -> Msg:
+    return Msg(msg.topic, msg.msg_type, msg.log_time_ns, fields)
+
+
+def bad_sample_recording(duration_s: float = 0.5) -> list[Msg]:
+    """The sample recording with bad messages injected at fixed places (see BAD_COUNTS)."""
+    counts = sample_counts(duration_s)
+    out = []
+    for topic in SAMPLE_TOPICS:
+        for k in range(counts[topic]):
+            m = sample_message(topic, k)
+            v = value(topic, k)
+            if topic == "/mocap/torso" and k == 10:  # NaN position
+                m = _replace(m, pose_stamped(sample_stamp(topic, k), [np.nan, 0, 0], v["quat"]))
+            elif topic == "/mocap/torso" and k == 20:  # the stamp of message 19 again
+                m = _replace(m, pose_stamped(sample_stamp(topic, 19), v["pos"], v["quat"]))
+            elif topic == "/mocap/torso" and k == 30:  # a stamp before message 29's
+                m = _replace(m, pose_stamped(sample_stamp(topic, 28), v["pos"], v["quat"]))
+            elif topic == "/imu" and k == 5:  # Inf acceleration
+                m = _replace(m, imu(sample_stamp(topic, k), v["gyro"], [0, np.inf, 0], v["quat"]))
+            elif topic == "/joint_states" and k == 3:  # 3 names, 2 velocities
+                f = dict(m.fields, velocity=[1.0, 2.0])
+                m = _replace(m, f)
+            elif topic == "/joint_states" and k == 4:  # none of the mapped joints
+                m = _replace(m, joint_state(sample_stamp(topic, k), ["a", "b"], [1.0, 2.0]))
+            elif topic == "/joint_states" and k == 6:  # NaN in a joint the config does not map
+                f = dict(m.fields, position=[v["q"][1], np.nan, v["q"][0]])
+                m = _replace(m, f)
+            elif topic == "/joint_commands" and k == 7:  # 3 values for 2 actuators
+                m = _replace(m, float64_multi_array([1.0, 2.0, 3.0]))
+            out.append(m)
+    return sorted(out, key=lambda m: m.log_time_ns)
+
+
+# (stream, reason) → count of the injected bad samples, per config stream
+BAD_STREAM_COUNTS = {
+    "mocap_torso": {"nan": 1, "duplicate_time": 1, "backwards_time": 1},
+    "imu": {"nan": 1},
+    "joints": {"wrong_length": 1, "unknown_name": 1},
+    "command": {"wrong_length": 1},
+}
+# per topic, from the messages alone (no config): the NaN in the unmapped joint counts, the
+# unmapped names and the array length of a Float64MultiArray do not
+BAD_TOPIC_COUNTS = {
+    "/mocap/torso": {"nan": 1, "duplicate_time": 1, "backwards_time": 1},
+    "/imu": {"nan": 1},
+    "/joint_states": {"wrong_length": 1, "nan": 1},
+}
+# (topic, k) of the messages a stream skips
+BAD_SKIPPED = {
+    "mocap_torso": {10, 20, 30},
+    "imu": {5},
+    "joints": {3, 4},
+    "command": {7},
+}
+
+
+def corrupt_string_length(data: bytes, marker: str) -> bytes:
+    """Overwrite the CDR length in front of the string `marker` (an uncompressed log)."""
+    raw = marker.encode() + b"\x00"
+    at = data.index(raw)
+    assert data.count(raw) == 1, "marker must occur once"
+    return data[: at - 4] + b"\xff\xff\xff\x7f" + data[at:]

@@ -11,7 +11,7 @@ sample, raises `MissingTopicError`.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -89,7 +89,7 @@ def finish(
     topics = extractor.topic_stats(source.topics if extractor.decode_all else None)
     if require and config is not None:
         accepted = {name: len(m) for name, m in measurements.items()}
-        check_required(source.name, config, topics, accepted, bad)
+        check_required(source.name, config, topics, accepted, bad, available=source.topics)
     return Log(
         source=source.name,
         measurements=measurements,
@@ -105,10 +105,12 @@ def missing_required(
     topics: Mapping[str, TopicStats],
     accepted: Mapping[str, int],
     bad: Mapping[str, BadSampleCounts],
+    available: Iterable[str] = (),
 ) -> list[str]:
     """One line per required stream whose topic is absent or that has no usable sample.
 
-    accepted: samples kept per stream; bad: skipped messages per stream.
+    accepted: samples kept per stream; bad: skipped messages per stream; available: every
+    topic the log declares (also those not read), listed when a topic is missing.
     """
     problems = []
     for name, stream in config.streams.items():
@@ -116,10 +118,10 @@ def missing_required(
             continue
         topic = topics.get(stream.topic)
         if topic is None or topic.count == 0:
-            present = ", ".join(t for t, s in topics.items() if s.count) or "none"
+            listed = sorted({*available, *(t for t, s in topics.items() if s.count)})
             problems.append(
                 f"required stream {name!r}: topic {stream.topic!r} is not in the log "
-                f"(topics with messages: {present})"
+                f"(its topics: {', '.join(listed) or 'none'})"
             )
         else:
             counts = bad.get(name, BadSampleCounts()).as_dict()
@@ -137,8 +139,9 @@ def check_required(
     topics: Mapping[str, TopicStats],
     accepted: Mapping[str, int],
     bad: Mapping[str, BadSampleCounts],
+    available: Iterable[str] = (),
 ) -> None:
     """Raise `MissingTopicError` naming every required stream without usable samples."""
-    problems = missing_required(config, topics, accepted, bad)
+    problems = missing_required(config, topics, accepted, bad, available)
     if problems:
         raise MissingTopicError(f"{source}: " + "; ".join(problems))

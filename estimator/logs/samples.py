@@ -35,6 +35,15 @@ from estimator.logs.measurements import BadSampleCounts, Sample, TopicStats
 from estimator.logs.source import RawMessage
 
 _IDENTITY = (1.0, 0.0, 0.0, 0.0)
+_FIRST = (np.zeros(1, dtype=np.intp), np.ones(1, dtype=bool), True)
+
+
+def _gather(array: np.ndarray, index: np.ndarray, found: np.ndarray) -> np.ndarray:
+    """Rows `index` of array (n, K); rows not found are NaN (values) or False (presence)."""
+    fill = np.nan if array.dtype.kind == "f" else False
+    out = np.full((len(index), array.shape[1]), fill, dtype=array.dtype)
+    out[found] = array[index[found]]
+    return out
 
 
 class SampleExtractor:
@@ -207,9 +216,10 @@ class _StreamState:
                 else (ros2_types.JOINT_TRAJECTORY,)
             )
         self.accepted = accepted
-        self.columns: list[int] | slice = (
-            [TRAJECTORY.index(cfg.field)] if cfg.field is not None else slice(None)
-        )
+        # the record columns the stream uses (None: all of them)
+        self.columns = [TRAJECTORY.index(cfg.field)] if cfg.field is not None else None
+        self.single = cfg.sources is None or cfg.kind == "tf"
+        self.plans: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray, bool]] = {}
         self.rotation: np.ndarray | None = None
         self.quat_sensor_site = np.zeros(4)
         if cfg.quat_site_sensor != _IDENTITY:
@@ -260,39 +270,56 @@ class _StreamState:
 
     def row(self, record: Record) -> np.ndarray:
         """(E, K) values of the stream's elements from one record."""
-        cfg = self.cfg
-        n_elements = len(cfg.elements)
-        if cfg.sources is None or cfg.kind == "tf":
-            index = np.zeros(1, dtype=np.intp)  # the record's only entry
-            if not len(record.names):
+        if self.single:  # the record's only entry (a TF record is already the right frame)
+            if not record.names:
                 raise BadSampleError("wrong_length", "empty message")
-        else:
-            if cfg.kind == "command" and cfg.field is None and len(record.names) != n_elements:
-                raise BadSampleError(
-                    "wrong_length", f"{len(record.names)} values for {n_elements} actuators"
-                )
-            lookup = {name: i for i, name in enumerate(record.names)}
-            index = np.array([lookup.get(s, -1) for s in cfg.sources], dtype=np.intp)
-            self.seen.update(s for s, i in zip(cfg.sources, index, strict=True) if i >= 0)
-            if (index < 0).all():
-                raise BadSampleError("unknown_name", "none of the mapped names is in the message")
-        if cfg.kind == "tf" or cfg.sources is None:
             self.seen.add(record.names[0])
-        found = index >= 0
-        values = np.full((n_elements, record.values[:, self.columns].shape[1]), np.nan)
-        values[found] = record.values[index[found]][:, self.columns]
-        if record.present is not None:
-            present = np.zeros(values.shape, dtype=bool)
-            present[found] = record.present[index[found]][:, self.columns]
+            index, found, complete = _FIRST
+        else:
+            index, found, complete = self.plan(record.names)
+        values = record.values[index] if complete else _gather(record.values, index, found)
+        if self.columns is not None:
+            values = values[:, self.columns]
+        if record.present is None:
+            if not np.isfinite(values).all():
+                raise BadSampleError("nan", "NaN or Inf in a used field")
+        else:
+            present = record.present[index] if complete else _gather(record.present, index, found)
+            if self.columns is not None:
+                present = present[:, self.columns]
             if not present.any():
                 raise BadSampleError("wrong_length", "the message carries none of the used fields")
-        else:
-            present = np.broadcast_to(found[:, None], values.shape)
-        if (present & ~np.isfinite(values)).any():
-            raise BadSampleError("nan", "NaN or Inf in a used field")
+            if (present & ~np.isfinite(values)).any():
+                raise BadSampleError("nan", "NaN or Inf in a used field")
         if self.rotation is not None:
             self.rotate(values[0])
         return values
+
+    def plan(self, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, bool]:
+        """(index (E,), found (E,), all found) of the stream's sources in `names`, cached.
+
+        Messages on a topic almost always repeat the same names, so the lookup is built once
+        per distinct name list.
+        """
+        plan = self.plans.get(names)
+        if plan is not None:
+            return plan
+        cfg = self.cfg
+        assert cfg.sources is not None
+        if cfg.kind == "command" and cfg.field is None and len(names) != len(cfg.elements):
+            raise BadSampleError(
+                "wrong_length", f"{len(names)} values for {len(cfg.elements)} actuators"
+            )
+        lookup = {name: i for i, name in enumerate(names)}
+        index = np.array([lookup.get(src, -1) for src in cfg.sources], dtype=np.intp)
+        found = index >= 0
+        if not found.any():
+            raise BadSampleError("unknown_name", "none of the mapped names is in the message")
+        self.seen.update(src for src, ok in zip(cfg.sources, found, strict=True) if ok)
+        if len(self.plans) >= 256:  # names that change every message: do not grow forever
+            self.plans.clear()
+        plan = self.plans[names] = (index, found, bool(found.all()))
+        return plan
 
     def rotate(self, v: np.ndarray) -> None:
         """Sensor axes → site axes, in place: v_site = R_site_sensor v_sensor.

@@ -143,18 +143,18 @@ def _check_magic(path: Path) -> None:
 def _iter_file(src: LogSource, path: Path, topics: Collection[str] | None) -> Iterator[RawMessage]:
     with path.open("rb") as f:
         summary = None
+        summary_error = None
         try:
             summary = SeekingReader(f).get_summary()
         except Exception as err:  # any unreadable footer/summary: salvage record by record
-            size = path.stat().st_size
-            src.warn(
-                f"{path}: no valid MCAP summary/footer ({_describe(err)}); the file is "
-                f"truncated or damaged ({size} bytes); reading every complete record",
-                truncated=True,
-            )
+            summary_error = err
         if summary is None or not summary.chunk_indexes:
             f.seek(0)
-            yield from _iter_linear(src, _ExactReader(f), topics, str(path))
+            size = path.stat().st_size
+            warnings_before = len(src.warnings)
+            yield from _iter_linear(src, _ExactReader(f), topics, str(path), size)
+            if summary_error is not None and len(src.warnings) == warnings_before:
+                src.warn(f"{path}: damaged MCAP summary ({_describe(summary_error)})")
             return
         for channel in summary.channels.values():
             schema = summary.schemas.get(channel.schema_id)
@@ -173,9 +173,16 @@ def _iter_file(src: LogSource, path: Path, topics: Collection[str] | None) -> It
 
 
 def _iter_linear(
-    src: LogSource, stream: _ExactReader, topics: Collection[str] | None, name: str
+    src: LogSource,
+    stream: _ExactReader,
+    topics: Collection[str] | None,
+    name: str,
+    size: int | None = None,
 ) -> Iterator[RawMessage]:
-    """Record by record; schemas and channels are remembered as they appear."""
+    """Record by record; schemas and channels are remembered as they appear.
+
+    size: the file's length, for the warning; None for a stream.
+    """
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     records = StreamReader(stream, record_size_limit=1 << 30).records  # type: ignore[arg-type]
@@ -189,8 +196,9 @@ def _iter_linear(
         except Exception as err:  # truncated or damaged from here on
             if stream.count <= len(_MAGIC):
                 raise LogError(f"{name}: not an MCAP stream ({_describe(err)})") from err
+            of_size = f" of {size}" if size is not None else ""
             src.warn(
-                f"{name}: log ends early or is damaged after byte {stream.count} "
+                f"{name}: truncated or damaged after byte {stream.count}{of_size} "
                 f"({_describe(err)}); kept every complete message before it",
                 truncated=True,
             )

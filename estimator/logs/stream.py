@@ -67,6 +67,7 @@ class ByteStreamReader:
                 self._extractor.topic_stats(),
                 self._accepted,
                 self._extractor.bad_counts(),
+                available=self._source.topics,
             )
 
     def read_all(self) -> Log:
