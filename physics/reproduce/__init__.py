@@ -1,0 +1,1 @@
+"""Reproductions of the paper's results (benchmarks, not tests): Fig. 2 and Fig. 3."""
