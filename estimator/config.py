@@ -105,6 +105,7 @@ _KIND_KEYS: Mapping[str, tuple[str, ...]] = {
 }
 _TOP_KEYS = ("model", "description", "streams")
 _IDENTITY_WXYZ = (1.0, 0.0, 0.0, 0.0)
+_MAX_OFFSET_NS = 10**15
 
 _OBJ_TYPES: Mapping[str, int] = {
     "body": mujoco.mjtObj.mjOBJ_BODY,
@@ -313,9 +314,10 @@ class _Parser:
         if not topic:
             raise self.error(f"{key}.topic", "empty topic name")
         offset = raw.get("time_offset_ns", 0)
-        if isinstance(offset, bool) or not isinstance(offset, int):
+        if isinstance(offset, bool) or not isinstance(offset, int) or abs(offset) > _MAX_OFFSET_NS:
             raise self.error(
-                f"{key}.time_offset_ns", f"expected an integer (ns), got {self.show(offset)}"
+                f"{key}.time_offset_ns",
+                f"expected an integer number of ns within ±1e15 (11 days), got {self.show(offset)}",
             )
         required = raw.get("required", True)
         if not isinstance(required, bool):

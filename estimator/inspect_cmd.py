@@ -236,6 +236,7 @@ def _topic_json(s: TopicStats) -> dict[str, Any]:
         "last_log_time_ns": s.span_ns[1] if s.span_ns else None,
         "largest_gap_ns": gap[0] if gap else None,
         "largest_gap_at_ns": gap[1] if gap else None,
+        "interval_std_ns": s.jitter_ns,
         "clock_offset_ns": s.clock_offset_ns,
         "bad": s.bad.as_dict(),
     }

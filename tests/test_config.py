@@ -67,6 +67,14 @@ def test_bundled_model_by_name(tmp_path):
     assert config.model_path == MODEL_DIR / "humanoid.xml"
 
 
+def test_the_readme_example_is_a_valid_config(tmp_path):
+    readme = (Path(__file__).parents[1] / "configs" / "README.md").read_text()
+    (tmp_path / "example.toml").write_text(readme.split("```toml\n")[1].split("```")[0])
+    config = load_config(tmp_path / "example.toml")
+    assert len(config.streams) == 9
+    assert len(config.streams["joints"].elements) == 21 == len(config.streams["command"].elements)
+
+
 def test_other_sections_pass_through_when_declared(tmp_path):
     text = SAMPLE_CONFIG + "\n[simulate]\nduration_s = 2.0\n"
     config = _load(tmp_path, text, extra_sections=("simulate",))
@@ -110,7 +118,12 @@ STREAM = '[streams.s]\ntype = "pose"\ntopic = "/p"\n'
         ),
         (
             HEAD + STREAM + 'body = "torso"\ntime_offset_ns = 1.5\n',
-            "streams.s.time_offset_ns: expected an integer (ns), got 1.5 (float)",
+            "streams.s.time_offset_ns: expected an integer number of ns within ±1e15 (11 days), "
+            "got 1.5 (float)",
+        ),
+        (
+            HEAD + STREAM + 'body = "torso"\ntime_offset_ns = 9_000_000_000_000_000_000\n',
+            "streams.s.time_offset_ns: expected an integer number of ns within ±1e15",
         ),
         (
             HEAD + STREAM + 'body = "torso"\nrequired = "yes"\n',

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import ros2_logs as rl
 from mcap.reader import make_reader
+from mcap.writer import Writer as McapWriter
 
 from estimator.config import load_config
 from estimator.errors import LogError, MissingTopicError
@@ -271,6 +272,24 @@ def test_undecodable_and_unknown_types_are_counted(tmp_path):
     assert log.topics["/joint_states"].bad.undecodable == 1
     assert log.measurements["imu2"].bad.unknown_type == COUNTS["/mocap/torso"]
     assert len(log.measurements["imu2"]) == 0
+
+
+def test_messages_without_a_ros2_schema_are_unknown_types(tmp_path):
+    """A JSON channel (a non-ROS tool's MCAP) is counted, per topic and per stream, not read."""
+    text = rl.SAMPLE_CONFIG + '[streams.j]\ntype = "imu"\ntopic = "/json"\nsite = "imu"\n'
+    config = load_config(rl.write_robot(tmp_path, text))
+    with (tmp_path / "json.mcap").open("wb") as f:
+        writer = McapWriter(f)
+        writer.start(profile="", library="test")
+        schema = writer.register_schema("Imu", "jsonschema", b"{}")
+        channel = writer.register_channel("/json", "json", schema)
+        for k in range(3):
+            writer.add_message(channel, log_time=rl.T0 + k, publish_time=rl.T0 + k, data=b"{}")
+        writer.finish()
+    log = read_log(tmp_path / "json.mcap", config, require=False, decode_all=True)
+    assert log.topics["/json"].msg_type == "Imu"
+    assert log.topics["/json"].bad.unknown_type == 3
+    assert log.measurements["j"].bad.unknown_type == 3 and len(log.measurements["j"]) == 0
 
 
 def test_missing_required_topic_is_one_clear_error(sample, tmp_path):
