@@ -6,9 +6,8 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
-from physics.errors import PhysicsError
-
 from estimator.errors import PhysfuseError
+from physics.errors import PhysicsError
 
 # name -> (module path, help); modules expose `add_arguments(parser)` and `run(args) -> int`.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {

@@ -47,9 +47,16 @@ class Dynamics(ABC):
         qvel: np.ndarray,
         ctrl: np.ndarray | None = None,
         qfrc_applied: np.ndarray | None = None,
-        **solver: float,
+        *,
+        warmstart: np.ndarray | None = None,
+        iterations: int | None = None,
+        tolerance: float | None = None,
     ) -> ForwardResult:
-        """(q, v, u) → v' and the impulses of every constraint (Section II)."""
+        """(q, v, u) → v' and the impulses of every constraint (Section II).
+
+        warmstart: (nv,) a guess of qacc (e.g. the previous step's); iterations, tolerance:
+        the solver's limits (None: the path's defaults).
+        """
 
     @abstractmethod
     def inverse(self, qpos: np.ndarray, qvel: np.ndarray, qacc: np.ndarray) -> InverseResult:

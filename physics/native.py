@@ -48,16 +48,23 @@ class NativeDynamics(Dynamics):
         qvel: np.ndarray,
         ctrl: np.ndarray | None = None,
         qfrc_applied: np.ndarray | None = None,
+        *,
         warmstart: np.ndarray | None = None,
-        **solver: float,
+        iterations: int | None = None,
+        tolerance: float | None = None,
     ) -> ForwardResult:
         """mj_forward with the solver chosen by `set_solver` (MuJoCo's Newton by default).
 
         warmstart: (nv,) initial guess for qacc (e.g. the previous step's or a previous
         solve's); MuJoCo's Newton can stop early from a poor guess, restarting it from its own
-        answer converges it to machine precision.
+        answer converges it to machine precision. iterations, tolerance: override the model's
+        opt.iterations / opt.tolerance for this and later calls.
         """
         m, d, h = self.model, self.data, self.h
+        if iterations is not None:
+            m.opt.iterations = iterations
+        if tolerance is not None:
+            m.opt.tolerance = tolerance
         self._set_state(qpos=qpos, qvel=qvel, ctrl=ctrl, qfrc_applied=qfrc_applied)
         d.qacc_warmstart[:] = 0.0 if warmstart is None else warmstart
         mujoco.mj_forward(m, d)

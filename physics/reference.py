@@ -28,10 +28,16 @@ class ReferenceDynamics(Dynamics):
         qvel: np.ndarray,
         ctrl: np.ndarray | None = None,
         qfrc_applied: np.ndarray | None = None,
-        iterations: float = 1000,
-        tolerance: float = 1e-12,
+        *,
+        warmstart: np.ndarray | None = None,
+        iterations: int | None = None,
+        tolerance: float | None = None,
     ) -> ForwardResult:
-        """Forward dynamics with at most `iterations` GPGS sweeps (stops at `tolerance`)."""
+        """Forward dynamics by at most `iterations` GPGS sweeps (default 1000), stopping once the
+        inverse-consistency residual is ≤ `tolerance` (default 1e-12; 0 runs every sweep).
+        A warm start qacc gives the first impulses by Theorem 4 at v' = v + h·qacc."""
+        iterations = 1000 if iterations is None else iterations
+        tolerance = 1e-12 if tolerance is None else tolerance
         m, d, h = self.model, self.data, self.h
         self._set_state(qpos=qpos, qvel=qvel, ctrl=ctrl, qfrc_applied=qfrc_applied)
         # Phase I (MuJoCo): kinematics, CRB + LDL, collision, Jacobians; RNE bias; actuation
@@ -53,6 +59,9 @@ class ReferenceDynamics(Dynamics):
         # eq. 8: A = J M̂⁻¹ Jᵀ, v⁻ = J v̂; eq. 11 by GPGS
         J = space.J[C]
         MinvJT = cho_solve(Mhat, J.T) if J.size else np.zeros((m.nv, 0))
+        f0 = None
+        if warmstart is not None:
+            f0 = impulses(space, v + h * np.asarray(warmstart, dtype=float))[0][C]
         f, stats = solve_gpgs(
             J @ MinvJT,
             J @ vhat,
@@ -60,8 +69,9 @@ class ReferenceDynamics(Dynamics):
             space.R[C],
             space.eta[C],
             space.contact_objects(),
-            int(iterations),
+            iterations,
             tolerance,
+            f0,
         )
         # eq. 6: v' = v̂ + M̂⁻¹ Jᵀ f;  eq. 13: f_E = R_E⁻¹ (v*_E − J_E v')
         v_next = vhat + MinvJT @ f

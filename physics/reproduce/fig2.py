@@ -31,8 +31,6 @@ def simulate(
     """
     m = load_model("single_joint")
     dyn = make_dynamics(m, path)  # type: ignore[arg-type]
-    if path == "native":
-        dyn.set_solver("newton", iterations=100, tolerance=1e-15)  # type: ignore[attr-defined]
     h = dyn.h
     rng = np.random.default_rng(seed)
     key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "home")

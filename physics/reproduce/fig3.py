@@ -40,11 +40,14 @@ def humanoid_all_friction() -> mujoco.MjModel:
     return m
 
 
-def drive(m: mujoco.MjModel, duration: float, seed: int) -> list[tuple[np.ndarray, ...]]:
+State = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # qpos, qvel, ctrl, qacc
+
+
+def drive(m: mujoco.MjModel, duration: float, seed: int) -> list[State]:
     """States (qpos, qvel, ctrl) visited while pushing, dropping and flailing the humanoid."""
     d = mujoco.MjData(m)
     rng = np.random.default_rng(seed)
-    states = []
+    states: list[State] = []
     steps = round(duration / m.opt.timestep)
     drop_every = round(4.0 / m.opt.timestep)
     push_every = round(0.5 / m.opt.timestep)
@@ -77,7 +80,7 @@ def _time_us(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> float:
     return (time.perf_counter_ns() - t0) / 1e3
 
 
-def measure(states: list[tuple[np.ndarray, ...]], m: mujoco.MjModel) -> dict[str, np.ndarray]:
+def measure(states: list[State], m: mujoco.MjModel) -> dict[str, np.ndarray]:
     """Per state: nefc and the µs of each computation on each path."""
     ref = make_dynamics(m, "reference")
     nat_inv = make_dynamics(m, "native")  # Newton setting: mj_inverse skips the dense A
@@ -130,7 +133,7 @@ def measure(states: list[tuple[np.ndarray, ...]], m: mujoco.MjModel) -> dict[str
     return {k: np.asarray(v) for k, v in rows.items()}
 
 
-def position_stage_breakdown(m: mujoco.MjModel, states: list[tuple[np.ndarray, ...]]) -> dict:
+def position_stage_breakdown(m: mujoco.MjModel, states: list[State]) -> dict:
     """Median µs of the Phase I pieces inside mj_invPosition (= mj_fwdPosition)."""
     d = mujoco.MjData(m)
     pieces = {
@@ -240,7 +243,9 @@ def _plot(path: Path, t: dict[str, np.ndarray]) -> None:
         }
         ax = axes[0, col]
         ax.semilogy(nefc, med["forward50"], "o-", ms=3, label="forward, 50 iterations")
-        ax.semilogy(nefc, med["forward5"], "o-", ms=3, label="forward, 5 iterations")
+        ax.semilogy(
+            nefc, med["forward5"], "o-", ms=3, color="tab:green", label="forward, 5 iterations"
+        )
         ax.semilogy(nefc, med["inverse"], "o-", ms=3, color="tab:orange", label="inverse")
         ax.set_title(title)
         ax.set_ylabel("median CPU time per step (µs)")
@@ -248,7 +253,14 @@ def _plot(path: Path, t: dict[str, np.ndarray]) -> None:
         ax.legend(fontsize=8)
         ax = axes[1, col]
         ax.plot(nefc, med["forward50"] / med["inverse"], "o-", ms=3, label="50 iterations")
-        ax.plot(nefc, med["forward5"] / med["inverse"], "o-", ms=3, label="5 iterations")
+        ax.plot(
+            nefc,
+            med["forward5"] / med["inverse"],
+            "o-",
+            ms=3,
+            color="tab:green",
+            label="5 iterations",
+        )
         ax.axhline(1.0, color="gray", lw=0.8)
         ax.set_xlabel("number of impulses (nefc)")
         ax.set_ylabel("speedup: forward / inverse")
