@@ -1,0 +1,48 @@
+"""The result of estimation: motion, forces, biases, uncertainty and residuals on a time grid."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from physics.result import Constraints
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A smoothed trajectory on a uniform grid of T knots (step h).
+
+    t_ns:          (T,) int64 knot times, ns
+    qpos:          (T, nq) configuration (MuJoCo layout; quaternions w, x, y, z)
+    qvel:          (T, nv) v_k = (q_k ⊖ q_{k−1})/h, the velocity the inverse dynamics see
+                   (v_0 = v_1)
+    qacc:          (T, nv) a_k = (v_{k+1} − v_k)/h (0 at the last knot)
+    qfrc_inverse:  (T, nv) u of eq. 12 from the analytic inverse at (q_k, v_k, a_k)
+    qfrc_known:    (T, nv) the generalized force the logged commands produce through the
+                   actuators (NaN on dofs with no known force)
+    qpos_std:      (T, nv) marginal standard deviation of q_k in MuJoCo's tangent space
+                   (free joint: world position m, body-frame rotation rad; hinge rad; slide m)
+    constraints:   T entries: every contact/constraint impulse at knot k (physics.result)
+    imu_bias:      stream name → (T, 6) accelerometer bias (m/s²) then gyro bias (rad/s)
+    residuals:     factor type ("physics", a stream name, …) → (T, k) whitened residuals
+                   at each knot (NaN where the knot has no such factor)
+    model_name:    the model the estimate belongs to (bundled name or MJCF path)
+    """
+
+    t_ns: np.ndarray
+    h: float
+    qpos: np.ndarray
+    qvel: np.ndarray
+    qacc: np.ndarray
+    qfrc_inverse: np.ndarray
+    qfrc_known: np.ndarray
+    qpos_std: np.ndarray
+    constraints: tuple[Constraints, ...]
+    model_name: str
+    imu_bias: dict[str, np.ndarray] = field(default_factory=dict)
+    residuals: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def T(self) -> int:
+        return len(self.t_ns)
