@@ -13,6 +13,7 @@ from physics.errors import PhysicsError
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "reproduce": ("physics.reproduce.cli", "reproduce the paper's figures (benchmarks)"),
     "inspect": ("estimator.inspect_cmd", "topics, rates, gaps and bad samples of a robot log"),
+    "simulate": ("estimator.simulate_cmd", "simulate a robot log with ground truth (MCAP)"),
 }
 
 

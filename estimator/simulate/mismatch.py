@@ -1,0 +1,160 @@
+"""Model mismatch: the simulated robot differs from the model the estimator is given.
+
+`Mismatch.apply(model, rng)` returns a perturbed copy of the model (the "true" robot), the true
+contact softness, and a `MismatchRecord` of every perturbed value next to its nominal one,
+which the simulator writes into the log's metadata (`physfuse.mismatch`). Perturbations are
+multiplicative log-normal factors exp(σ·N(0, 1)), so a relative standard deviation σ keeps
+every quantity positive:
+
+    body_mass[b]        *= exp(σ_m z_b)
+    body_inertia[b, i]  *= exp(σ_m z_b) · exp(σ_I z_bi)   (principal moments; the triangle
+                                                          inequality is kept, else only the
+                                                          mass factor is applied)
+    geom_friction[g, 0] *= exp(σ_μ z_g)   (sliding friction; also explicit pairs' friction)
+    softness ε, κ       *= exp(σ_s z_ε), exp(σ_s z_κ)   (κ kept ≥ 2h, MuJoCo's refsafe floor)
+
+Derived constants (subtree masses, the inverse weights behind MuJoCo's regularizer) are
+recomputed with `mj_setConst`.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from physics.softness import Softness
+
+
+@dataclass(frozen=True)
+class MismatchRecord:
+    """Nominal and true values of everything a `Mismatch` changed.
+
+    body_mass: body → (nominal, true) [kg]; body_inertia: body → (nominal (3,), true (3,))
+    [kg·m²]; geom_friction: geom (or "pair:<name>") → (nominal, true) sliding coefficient;
+    softness: "eps" / "kappa" → (nominal, true).
+    """
+
+    body_mass: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    body_inertia: Mapping[str, tuple[tuple[float, ...], tuple[float, ...]]] = field(
+        default_factory=dict
+    )
+    geom_friction: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    softness: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+
+    def metadata(self) -> dict[str, str]:
+        """The MCAP metadata record: one JSON object per category, {name: [nominal, true]}."""
+        return {
+            "body_mass": json.dumps(dict(self.body_mass)),
+            "body_inertia": json.dumps(
+                {k: [list(v[0]), list(v[1])] for k, v in self.body_inertia.items()}
+            ),
+            "geom_friction": json.dumps(dict(self.geom_friction)),
+            "softness": json.dumps(dict(self.softness)),
+        }
+
+
+@dataclass(frozen=True)
+class Mismatch:
+    """Relative standard deviations of the perturbations (0 leaves a quantity nominal).
+
+    mass_rel_std: σ_m, body masses (inertias scale with them).
+    inertia_rel_std: σ_I, each principal moment on top of the mass factor.
+    friction_rel_std: σ_μ, sliding friction of every geom and explicit pair.
+    softness_rel_std: σ_s, the softness parameters ε and κ of Section V.
+    """
+
+    mass_rel_std: float = 0.05
+    inertia_rel_std: float = 0.05
+    friction_rel_std: float = 0.1
+    softness_rel_std: float = 0.1
+
+    @classmethod
+    def none(cls) -> Mismatch:
+        """The simulated robot is exactly the model."""
+        return cls(0.0, 0.0, 0.0, 0.0)
+
+    def apply(
+        self,
+        model: mujoco.MjModel,
+        rng: np.random.Generator,
+        softness: Softness | None = None,
+    ) -> tuple[mujoco.MjModel, Softness, MismatchRecord]:
+        """A perturbed copy of `model`, the true softness, and the record of both.
+
+        softness: the nominal softness (default `Softness()`, what the estimator assumes).
+        Draws from `rng` in a fixed order (masses, inertias, friction, softness), also when a
+        σ is 0, so that changing one σ does not reshuffle the others.
+        """
+        nominal = softness or Softness()
+        true = copy.deepcopy(model)
+        bodies = range(1, model.nbody)
+        z_mass = rng.standard_normal(model.nbody)
+        z_inertia = rng.standard_normal((model.nbody, 3))
+        z_friction = rng.standard_normal(model.ngeom + model.npair)
+        z_soft = rng.standard_normal(2)
+
+        masses, inertias = {}, {}
+        for b in bodies:
+            if model.body_mass[b] <= 0:
+                continue
+            name = _name(model, mujoco.mjtObj.mjOBJ_BODY, b)
+            scale = float(np.exp(self.mass_rel_std * z_mass[b]))
+            true.body_mass[b] = model.body_mass[b] * scale
+            moments = model.body_inertia[b] * scale * np.exp(self.inertia_rel_std * z_inertia[b])
+            if not _triangle(moments):
+                moments = model.body_inertia[b] * scale
+            true.body_inertia[b] = moments
+            if self.mass_rel_std:
+                masses[name] = (float(model.body_mass[b]), float(true.body_mass[b]))
+            if self.mass_rel_std or self.inertia_rel_std:
+                inertias[name] = (
+                    tuple(float(v) for v in model.body_inertia[b]),
+                    tuple(float(v) for v in true.body_inertia[b]),
+                )
+
+        frictions = {}
+        if self.friction_rel_std:
+            for g in range(model.ngeom):
+                if not (model.geom_contype[g] or model.geom_conaffinity[g]):
+                    continue
+                true.geom_friction[g, 0] *= np.exp(self.friction_rel_std * z_friction[g])
+                frictions[_name(model, mujoco.mjtObj.mjOBJ_GEOM, g)] = (
+                    float(model.geom_friction[g, 0]),
+                    float(true.geom_friction[g, 0]),
+                )
+            for p in range(model.npair):
+                factor = np.exp(self.friction_rel_std * z_friction[model.ngeom + p])
+                true.pair_friction[p, :2] *= factor
+                frictions[f"pair:{_name(model, mujoco.mjtObj.mjOBJ_PAIR, p)}"] = (
+                    float(model.pair_friction[p, 0]),
+                    float(true.pair_friction[p, 0]),
+                )
+
+        eps = nominal.eps * float(np.exp(self.softness_rel_std * z_soft[0]))
+        kappa = nominal.kappa * float(np.exp(self.softness_rel_std * z_soft[1]))
+        kappa = max(kappa, 2.0 * float(model.opt.timestep))
+        true_softness = Softness(
+            eps=eps, kappa=kappa, r_min=nominal.r_min, impratio=nominal.impratio
+        )
+        soft = {}
+        if self.softness_rel_std:
+            soft = {"eps": (nominal.eps, true_softness.eps), "kappa": (nominal.kappa, kappa)}
+
+        mujoco.mj_setConst(true, mujoco.MjData(true))
+        record = MismatchRecord(masses, inertias, frictions, soft)
+        return true, true_softness, record
+
+
+def _triangle(moments: np.ndarray) -> bool:
+    """Whether principal moments (3,) can belong to a rigid body: each ≤ the sum of the others."""
+    a, b, c = (float(v) for v in moments)
+    return a <= b + c and b <= a + c and c <= a + b
+
+
+def _name(model: mujoco.MjModel, obj: int, index: int) -> str:
+    return mujoco.mj_id2name(model, obj, index) or f"#{index}"

@@ -1,0 +1,332 @@
+"""Run a scenario and write the log a real robot could have produced, plus its ground truth.
+
+    result = simulate("humanoid_push", "run.mcap", seed=0)
+
+1. One `numpy.random.default_rng(seed)` feeds everything, in a fixed order: the model
+   mismatch, the controller, the pushes, then each sensor in turn.
+2. The mismatch-perturbed model (with its true softness written in by
+   `physics.dynamics.make_dynamics`) is stepped with `mj_step1` / control / `mj_step2`:
+   MuJoCo's semi-implicit Euler step with elliptic cones at the model's timestep, its Newton
+   solver run to convergence (tolerance 0), so that the inverse below reproduces the applied
+   forces to ~1e-12.
+3. Ground truth at every `ground_truth_decimation`-th step k: the state (q_k, v_k), and the
+   native analytic inverse of (q_k, v_k, (v_{k+1} − v_k)/h) on the true model — its
+   qfrc_inverse is the joints' effort, its impulses the contacts and contact wrenches
+   (`writer.write_state` layout under `/ground_truth`). Its time is the true time; so is its
+   log_time.
+4. Sensors sample the trajectory (`sensors.py`); all messages are written in receive-time
+   order, like a recorder, with metadata records `physfuse.simulation`,
+   `physfuse.mismatch`, `physfuse.sensors` and `physfuse.ground_truth`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import IO, Any
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
+from tqdm import tqdm
+
+from estimator.simulate.controllers import Push, apply_pushes
+from estimator.simulate.errors import SimulationError
+from estimator.simulate.mismatch import Mismatch, MismatchRecord
+from estimator.simulate.scenarios import Controller, Scenario, get_scenario
+from estimator.simulate.sensors import NS, Trajectory
+from estimator.simulate.writer import (
+    Message,
+    Ros2Writer,
+    StateLayout,
+    state_data,
+    state_messages,
+)
+from physics.dynamics import Dynamics, make_dynamics
+from physics.model import load_model
+from physics.softness import Softness
+
+T0_NS = 1_700_000_000 * NS  # the epoch of every simulated log: 2023-11-14T22:13:20Z
+GROUND_TRUTH = "/ground_truth"
+
+# What the ground-truth topics mean (the `physfuse.ground_truth` metadata record).
+GROUND_TRUTH_DEFINITIONS = {
+    "prefix": GROUND_TRUTH,
+    "time": "header.stamp = log_time = the true time of the state (no clock offset, no latency)",
+    "odometry": "nav_msgs/Odometry per free body: pose of the body frame in 'world'; twist = "
+    "linear velocity of the body origin and angular velocity, in the body frame; covariances 0",
+    "joint_states": "sensor_msgs/JointState of every hinge and slide joint: position = qpos, "
+    "velocity = qvel at step k; effort = qfrc_inverse of the native analytic inverse of "
+    "(q_k, v_k, (v_k+1 - v_k)/h) on the true model: actuator plus applied forces",
+    "contact_wrench": "geometry_msgs/WrenchStamped per body that can collide: net force and "
+    "torque of its contacts over step k (impulse / h), in the body frame, about the body origin",
+    "contacts": "physfuse_msgs/ContactArray: every contact of step k from the same inverse "
+    "(impulse in the contact frame, force = impulse / h, Algorithm 5 branch)",
+}
+
+
+@dataclass(frozen=True)
+class SimulationResult:
+    """What `simulate` did: the true motion and the truth behind every sensor message.
+
+    trajectory: the true motion (`Trajectory`). true_softness: the simulated contact softness.
+    mismatch: nominal vs true model values. pushes: the external pushes.
+    sensors: sensor name → its `SensorOutput.truth` (true values, biases, dropouts, ...).
+    topics: topic → message type of everything written. message_count: messages written.
+    """
+
+    scenario: Scenario
+    seed: int
+    duration_s: float
+    trajectory: Trajectory
+    true_softness: Softness
+    mismatch: MismatchRecord
+    pushes: tuple[Push, ...]
+    sensors: dict[str, dict[str, Any]]
+    topics: dict[str, str]
+    message_count: int
+
+
+def simulate(
+    scenario: Scenario | str,
+    out: str | Path | IO[bytes],
+    *,
+    seed: int = 0,
+    duration_s: float | None = None,
+    mismatch: bool = True,
+    progress: bool = False,
+    compression: str = "zstd",
+) -> SimulationResult:
+    """Simulate `scenario` and write its MCAP log to `out` (a path or a binary file).
+
+    seed: the only source of randomness; the same seed writes the same file.
+    duration_s: simulated time [s] (default: the scenario's). mismatch: False simulates the
+    nominal model. progress: show tqdm progress bars (on stderr).
+    """
+    scenario = get_scenario(scenario) if isinstance(scenario, str) else scenario
+    duration = scenario.duration_s if duration_s is None else float(duration_s)
+    if not (math.isfinite(duration) and duration > 0):
+        raise SimulationError(f"duration {duration_s!r} s: expected a positive number of seconds")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise SimulationError(f"seed {seed!r}: expected a non-negative integer")
+    if scenario.ground_truth_decimation < 1:
+        raise SimulationError(
+            f"ground truth every {scenario.ground_truth_decimation} steps: expected >= 1"
+        )
+    if not mismatch:
+        scenario = replace(scenario, mismatch=Mismatch.none())
+    rng = np.random.default_rng(seed)
+
+    nominal = load_model(scenario.model)
+    true_model, true_softness, record = scenario.mismatch.apply(nominal, rng)
+    dyn = make_dynamics(true_model, "native", softness=true_softness)
+    # Newton to machine precision: the forward step and the analytic inverse then agree to
+    # ~1e-12 in generalized force (at MuJoCo's default tolerance 1e-8 they can differ by 1e-4)
+    dyn.model.opt.tolerance = 0.0
+    controller = scenario.controller(load_model(scenario.model), rng, duration)
+    pushes = scenario.pushes(rng, duration)
+
+    trajectory = _run(scenario, dyn.model, controller, pushes, duration, progress)
+    messages = _ground_truth(scenario, dyn, trajectory, progress)
+    truths: dict[str, dict[str, Any]] = {}
+    for sensor in scenario.sensors:
+        output = sensor.sample(trajectory, rng)
+        messages.extend(output.messages)
+        truths[sensor.name] = output.truth
+
+    order = sorted(range(len(messages)), key=lambda i: messages[i].log_time_ns)
+    topics = {m.topic: m.msg_type for m in messages}
+    metadata = _metadata(scenario, seed, duration, trajectory, record, true_softness, pushes)
+    try:
+        writer = Ros2Writer(out, compression=compression)
+    except OSError as err:
+        raise SimulationError(f"cannot write {out}: {err.strerror or err}") from err
+    with writer:
+        for name, data in metadata.items():
+            writer.add_metadata(name, data)
+        for i in tqdm(order, desc="write", unit="msg", disable=not progress, leave=False):
+            m = messages[i]
+            writer.write(m.topic, m.msg_type, m.fields, m.log_time_ns, qos=m.qos)
+    return SimulationResult(
+        scenario=scenario,
+        seed=seed,
+        duration_s=duration,
+        trajectory=trajectory,
+        true_softness=true_softness,
+        mismatch=record,
+        pushes=pushes,
+        sensors=truths,
+        topics=dict(sorted(topics.items())),
+        message_count=len(messages),
+    )
+
+
+def _run(
+    scenario: Scenario,
+    m: mujoco.MjModel,
+    controller: Controller,
+    pushes: tuple[Push, ...],
+    duration_s: float,
+    progress: bool,
+) -> Trajectory:
+    """Step the true model for `duration_s` and record its trajectory."""
+    h = float(m.opt.timestep)
+    steps = max(1, round(duration_s / h))
+    d = mujoco.MjData(m)
+    key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, scenario.keyframe)
+    if key >= 0:
+        mujoco.mj_resetDataKeyframe(m, d, key)
+    qpos = np.zeros((steps + 1, m.nq))
+    qvel = np.zeros((steps + 1, m.nv))
+    site_xpos = np.zeros((steps + 1, m.nsite, 3))
+    site_xmat = np.zeros((steps + 1, m.nsite, 9))
+    sensordata_vel = np.zeros((steps + 1, m.nsensordata))
+    sensordata_acc = np.zeros((steps, m.nsensordata))
+    ctrl = np.zeros((steps, m.nu))
+    qfrc_actuator = np.zeros((steps, m.nv))
+    bar = tqdm(total=steps, desc=f"simulate {scenario.name}", unit="step", disable=not progress)
+    with bar:
+        for k in range(steps + 1):
+            mujoco.mj_step1(m, d)  # positions, velocities and their sensors at state k
+            if not (np.isfinite(d.qpos).all() and np.isfinite(d.qvel).all()):
+                raise SimulationError(
+                    f"scenario {scenario.name}: the simulation diverged at t = {k * h:.3f} s"
+                )
+            qpos[k], qvel[k] = d.qpos, d.qvel
+            site_xpos[k], site_xmat[k] = d.site_xpos, d.site_xmat
+            sensordata_vel[k] = d.sensordata
+            if k == steps:
+                break
+            d.ctrl[:] = controller(k * h, d)
+            apply_pushes(m, d, pushes, k * h)
+            mujoco.mj_step2(m, d)  # forces, constraint solve, acceleration sensors, integrate
+            ctrl[k], qfrc_actuator[k] = d.ctrl, d.qfrc_actuator
+            sensordata_acc[k] = d.sensordata
+            bar.update()
+    rot = Rotation.from_matrix(site_xmat.reshape(-1, 3, 3))
+    site_xquat = rot.as_quat(scalar_first=True).reshape(steps + 1, m.nsite, 4)
+    return Trajectory(
+        model=m,
+        t0_ns=T0_NS,
+        h=h,
+        qpos=qpos,
+        qvel=qvel,
+        site_xpos=site_xpos,
+        site_xquat=site_xquat,
+        sensordata_vel=sensordata_vel,
+        sensordata_acc=sensordata_acc,
+        ctrl=ctrl,
+        qfrc_actuator=qfrc_actuator,
+    )
+
+
+def _ground_truth(
+    scenario: Scenario, dyn: Dynamics, traj: Trajectory, progress: bool
+) -> list[Message]:
+    """The `/ground_truth` messages: state, inverse-dynamics effort and contacts per step."""
+    m = dyn.model
+    layout = StateLayout.of(m)
+    data = mujoco.MjData(m)
+    messages: list[Message] = []
+    steps = range(0, traj.steps, scenario.ground_truth_decimation)
+    for k in tqdm(steps, desc="ground truth", unit="step", disable=not progress, leave=False):
+        qacc = (traj.qvel[k + 1] - traj.qvel[k]) / traj.h
+        inverse = dyn.inverse(traj.qpos[k], traj.qvel[k], qacc)
+        state_data(m, traj.qpos[k], traj.qvel[k], data)
+        t_ns = traj.t0_ns + int(traj.step_ns(k))
+        messages.extend(
+            state_messages(
+                GROUND_TRUTH,
+                t_ns,
+                m,
+                data,
+                qfrc=inverse.qfrc_inverse,
+                constraints=inverse.constraints,
+                layout=layout,
+            )
+        )
+    return messages
+
+
+def _metadata(
+    scenario: Scenario,
+    seed: int,
+    duration_s: float,
+    traj: Trajectory,
+    record: MismatchRecord,
+    softness: Softness,
+    pushes: Iterable[Push],
+) -> dict[str, dict[str, str]]:
+    """The MCAP metadata records (name → string pairs; structured values as JSON)."""
+    simulation = {
+        "scenario": scenario.name,
+        "description": scenario.description,
+        "model": scenario.model,
+        "seed": str(seed),
+        "duration_s": repr(duration_s),
+        "timestep_s": repr(traj.h),
+        "steps": str(traj.steps),
+        "start_time_ns": str(traj.t0_ns),
+        "keyframe": scenario.keyframe,
+        "ground_truth_decimation": str(scenario.ground_truth_decimation),
+        "pushes": json.dumps([p.as_dict() for p in pushes]),
+        "mismatch": json.dumps(asdict(scenario.mismatch)),
+        "solver": "newton, tolerance 0 (converged), elliptic cones, Euler",
+    }
+    mismatch = record.metadata() | {
+        "true_softness": json.dumps({"eps": softness.eps, "kappa": softness.kappa})
+    }
+    sensors = {s.name: json.dumps(s.settings()) for s in scenario.sensors}
+    return {
+        "physfuse.simulation": simulation,
+        "physfuse.mismatch": mismatch,
+        "physfuse.sensors": sensors,
+        "physfuse.ground_truth": dict(GROUND_TRUTH_DEFINITIONS),
+    }
+
+
+# -- the scenario's config -----------------------------------------------------------------------
+def scenario_config(scenario: Scenario | str) -> str:
+    """The config TOML (estimator/config.py schema) that maps the scenario's sensor topics
+    onto its model, with the sensors' noise levels and the clock offsets to undo."""
+    scenario = get_scenario(scenario) if isinstance(scenario, str) else scenario
+    model = load_model(scenario.model)
+    lines = [
+        f"# Generated by `physfuse simulate {scenario.name} --config-out ...`: the sensor",
+        "# topics of the simulated log mapped onto the model. time_offset_ns undoes each",
+        "# sensor's clock offset (commands: the transport latency).",
+        f"model = {_toml(scenario.model)}",
+        f"description = {_toml(f'simulated: {scenario.description}')}",
+    ]
+    for name, table in scenario.config_streams(model).items():
+        lines += ["", f"[streams.{name}]"]
+        lines += [f"{key} = {_toml(value)}" for key, value in table.items()]
+    return "\n".join(lines) + "\n"
+
+
+def _toml(value: Any) -> str:
+    """A TOML value: strings, numbers, booleans, lists and (inline) tables."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise ValueError(f"TOML has no {value}")
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_toml(v) for v in value) + "]"
+    if isinstance(value, dict):
+        items = ", ".join(f"{_toml_key(k)} = {_toml(v)}" for k, v in value.items())
+        return "{ " + items + " }" if items else "{}"
+    raise TypeError(f"no TOML form for {type(value).__name__}")
+
+
+def _toml_key(key: str) -> str:
+    bare = key and all(c.isalnum() or c in "_-" for c in key)
+    return key if bare else json.dumps(key)
