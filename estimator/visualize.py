@@ -1,0 +1,618 @@
+"""The Rerun recording a user opens to judge an estimate (`estimate.rrd`, a viewer, a web viewer).
+
+    path = write_recording(estimate, model, log, path="out/estimate.rrd")
+    write_recording(estimate, model, log, path=path, spawn=True)   # + a native viewer (display)
+    write_recording(estimate, model, log, path=path, serve=True)   # + prints the web viewer URL
+    serve_until_interrupted()                                       # keep serving until Ctrl-C
+
+What the recording holds (entity paths; `time` is a duration timeline, seconds since the start
+of the log, and the recording's start time is that instant in absolute time):
+
+    world                                   Z up (MuJoCo's world frame), metres
+      model/<body>                          Transform3D per knot: the body pose from qpos
+        <geom>                              static primitive in the geom frame (Boxes3D,
+                                            Capsules3D, Cylinders3D, Ellipsoids3D, Mesh3D)
+      model/world/<geom>                    static world geoms; a plane is a thin box under z = 0
+      measurements/<stream>/<element>       pose, tf, rigid_bodies: Transform3D per sample + axes
+      measurements/<stream>                 markers: Points3D per sample, labelled by site
+      contacts                              Arrows3D per knot from each contact point along the
+                                            contact force (FORCE_SCALE_M_PER_WEIGHT m per body
+                                            weight), coloured by Algorithm 5 branch
+      contacts/points                       Points3D per knot at every contact, same colours
+    plots/physics/<dof>                     whitened physics residual per dof (residuals["physics"])
+    plots/sensors/<stream>/<i>              whitened residual component i of each other factor
+    plots/contact_force/<body>              net normal contact force on the body, N
+    plots/imu_bias/<stream>/{accel,gyro}/{x,y,z}   m/s², rad/s
+    plots/uncertainty/<dof>                 qpos_std (free joint m / rad, hinge rad, slide m)
+
+Every per-knot array goes out in bulk with `send_columns`; NaN samples (a knot without that
+factor) are left out of their series. One blueprint: the 3D view on the left, tabs on the right
+(residuals, contact forces, IMU biases, uncertainty). Only this module imports Rerun.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import sys
+import time
+import urllib.parse
+import uuid
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from estimator.errors import PhysfuseError
+from estimator.estimate import Estimate
+from estimator.logs.reader import Log
+from physics.cone import Branch
+
+# A contact force equal to the model's weight (total mass · |g|) is drawn this long, in metres.
+FORCE_SCALE_M_PER_WEIGHT = 1.0
+# Half extent of an infinite plane (MuJoCo plane size 0) drawn as the floor, m.
+FLOOR_HALF_EXTENT_M = 10.0
+FLOOR_THICKNESS_M = 0.01
+# MuJoCo's viewer shows geom groups 0-2 by default; 3+ are usually collision-only duplicates.
+VISIBLE_GEOM_GROUPS = 3
+
+BRANCH_COLORS: Mapping[Branch, tuple[int, int, int]] = {
+    Branch.STICKING: (46, 204, 113),
+    Branch.SLIDING: (230, 126, 34),
+    Branch.SEPARATING: (149, 165, 166),
+}
+XYZ_COLORS = ((231, 76, 60), (39, 174, 96), (52, 120, 219))
+MEASUREMENT_COLORS = ((52, 152, 219), (155, 89, 182), (241, 196, 15), (26, 188, 156))
+POSE_KINDS = ("pose", "tf", "rigid_bodies")
+
+DEFAULT_GRPC_PORT = 9876
+DEFAULT_WEB_PORT = 9090
+LIVE_FLUSH_TIMEOUT_S = 60.0  # never wait forever on a viewer that went away
+
+_G = mujoco.mjtGeom
+_J = mujoco.mjtJoint
+_SERVING: list[rr.RecordingStream] = []
+
+
+class ViewerError(PhysfuseError):
+    """A Rerun viewer cannot be spawned or served (no display, a port in use)."""
+
+
+def write_recording(
+    estimate: Estimate,
+    model: mujoco.MjModel,
+    log: Log | None = None,
+    *,
+    path: str | Path | None = None,
+    spawn: bool = False,
+    serve: bool = False,
+    application_id: str = "physfuse",
+    host: str = "127.0.0.1",
+    grpc_port: int = DEFAULT_GRPC_PORT,
+    web_port: int = DEFAULT_WEB_PORT,
+    open_browser: bool = False,
+) -> Path | None:
+    """Write the estimate (and the log's mocap poses and markers) as a Rerun recording.
+
+    estimate: on the grid of `model` (estimate.qpos has model.nq columns).
+    log: the log the estimate came from; its pose, tf, rigid_bodies and markers streams are
+        drawn beside the model (the other kinds show through their residuals and biases).
+    path: the `.rrd` file to write (returned); None writes no file.
+    spawn: also start a native Rerun viewer (the `rerun` executable on PATH, and a display)
+        listening on port 9876 (grpc_port + 1 when also serving) and send it the recording;
+        returns once the viewer has it.
+    serve: also serve the recording over gRPC on host:grpc_port and a web viewer on
+        web_port, and print the viewer's URL. Returns once the data is served; the servers
+        live until `stop_serving()` (or process exit), so keep the process alive, e.g. with
+        `serve_until_interrupted()`. The web viewer's HTTP server cannot be stopped before the
+        process exits (Rerun 0.41 has no call for it).
+    Each call makes its own `rr.RecordingStream` (never the global one).
+    """
+    if estimate.qpos.shape != (estimate.T, model.nq):
+        raise ValueError(
+            f"estimate.qpos has shape {estimate.qpos.shape}, expected "
+            f"({estimate.T}, {model.nq}) for model {estimate.model_name!r}"
+        )
+    if path is None and not spawn and not serve:
+        raise ValueError("write_recording: give a path, spawn=True or serve=True")
+    if spawn:
+        _check_display()
+    if serve:
+        _check_port_free(host, grpc_port)
+        _check_port_free("0.0.0.0", web_port)  # the web viewer's HTTP server binds everywhere
+    recording_id = str(uuid.uuid4())
+    blueprint = build_blueprint(estimate, model)
+    out = None if path is None else Path(path)
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        rec = rr.RecordingStream(application_id, recording_id=recording_id)
+        rec.set_sinks(rr.FileSink(str(out)), default_blueprint=blueprint)
+        _log_all(rec, estimate, model, log)
+        rec.flush()
+        rec.disconnect()  # closes the file and writes its footer
+    if spawn or serve:
+        live = rr.RecordingStream(application_id, recording_id=recording_id)
+        sinks: list[rr.GrpcSink | rr.GrpcServerSink] = []
+        if spawn:
+            viewer_port = grpc_port + 1 if serve else DEFAULT_GRPC_PORT
+            live.spawn(port=viewer_port, connect=False)
+            sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{viewer_port}/proxy"))
+        server = rr.GrpcServerSink(host, grpc_port) if serve else None
+        if server is not None:
+            sinks.append(server)
+        live.set_sinks(*sinks, default_blueprint=blueprint)
+        if out is not None:  # the same chunks as the file, without logging them again
+            live.send_chunks(rr.chunk.RrdReader(out).stream())
+        else:
+            _log_all(live, estimate, model, log)
+        live.flush(timeout_sec=LIVE_FLUSH_TIMEOUT_S)
+        if server is not None:
+            try:
+                rr.serve_web_viewer(
+                    web_port=web_port, open_browser=open_browser, connect_to=server.uri
+                )
+            except RuntimeError as err:
+                live.disconnect()
+                raise ViewerError(f"cannot serve the web viewer on port {web_port}: {err}") from err
+            print(f"Rerun web viewer: {web_viewer_url(server.uri, host, web_port)}")
+            print(f"Native viewer:    rerun {server.uri}")
+            _SERVING.append(live)
+        else:
+            live.disconnect()
+    return out
+
+
+def _check_display() -> None:
+    """A native viewer needs a display; without one Rerun's viewer exits and the SDK waits."""
+    if sys.platform.startswith("linux") and not (
+        os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
+    ):
+        raise ViewerError(
+            "--spawn needs a display (neither DISPLAY nor WAYLAND_DISPLAY is set); use --serve "
+            "and open the printed URL in a browser, or open the .rrd with `rerun` elsewhere"
+        )
+
+
+def _check_port_free(host: str, port: int) -> None:
+    """Rerun's gRPC server only logs a failed bind; find a taken port before it does."""
+    with socket.socket() as probe:
+        try:
+            probe.bind((host, port))
+        except OSError as err:
+            raise ViewerError(
+                f"cannot serve on {host}:{port}: {err.strerror}; choose another port"
+            ) from err
+
+
+def web_viewer_url(grpc_uri: str, host: str = "127.0.0.1", web_port: int = DEFAULT_WEB_PORT) -> str:
+    """The address a browser opens to see the recording served at `grpc_uri`."""
+    return f"http://{host}:{web_port}/?url={urllib.parse.quote(grpc_uri, safe='')}"
+
+
+def stop_serving() -> None:
+    """Shut down the gRPC servers of every `write_recording(serve=True)` of this process."""
+    while _SERVING:
+        _SERVING.pop().disconnect()
+
+
+def serve_until_interrupted() -> None:
+    """Block until Ctrl-C, then `stop_serving()` (for a CLI that served a recording)."""
+    try:
+        while _SERVING:
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        print("stopping the Rerun servers", file=sys.stderr)
+    finally:
+        stop_serving()
+
+
+def build_blueprint(estimate: Estimate, model: mujoco.MjModel) -> rrb.Blueprint:
+    """The layout: 3D view left; right, tabs of time series (only those with data)."""
+    tabs: list[rrb.Container | rrb.View] = []
+    residual_views = []
+    if "physics" in estimate.residuals:
+        residual_views.append(
+            rrb.TimeSeriesView(origin="plots/physics", name="Physics residuals (whitened)")
+        )
+    if any(key != "physics" for key in estimate.residuals):
+        residual_views.append(
+            rrb.TimeSeriesView(origin="plots/sensors", name="Sensor residuals (whitened)")
+        )
+    if residual_views:
+        tabs.append(rrb.Vertical(*residual_views, name="Residuals"))
+    tabs.append(rrb.TimeSeriesView(origin="plots/contact_force", name="Contact normal force [N]"))
+    if estimate.imu_bias:
+        streams = [_part(s) for s in estimate.imu_bias]
+        tabs.append(
+            rrb.Vertical(
+                rrb.TimeSeriesView(
+                    origin="plots/imu_bias",
+                    contents=[f"$origin/{s}/accel/**" for s in streams],
+                    name="Accelerometer bias [m/s²]",
+                ),
+                rrb.TimeSeriesView(
+                    origin="plots/imu_bias",
+                    contents=[f"$origin/{s}/gyro/**" for s in streams],
+                    name="Gyro bias [rad/s]",
+                ),
+                name="IMU biases",
+            )
+        )
+    tabs.append(rrb.TimeSeriesView(origin="plots/uncertainty", name="qpos std (m, rad)"))
+    weight = _weight_n(model)
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(
+                origin="world",
+                name=f"{estimate.model_name} (contact arrows: {FORCE_SCALE_M_PER_WEIGHT:g} m = "
+                f"body weight, {weight:.0f} N)",
+            ),
+            rrb.Tabs(*tabs, name="Time series"),
+            column_shares=[3, 2],
+        ),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(timeline="time", state="collapsed"),
+    )
+
+
+def dof_names(model: mujoco.MjModel) -> list[str]:
+    """(nv,) one name per dof: `<joint>` for hinges and slides, `<joint>_{x,y,z,rx,ry,rz}`
+    for free joints (world translation, body rotation), `<joint>_{rx,ry,rz}` for balls."""
+    names = [""] * model.nv
+    for j in range(model.njnt):
+        joint = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}"
+        kind = model.jnt_type[j]
+        if kind == _J.mjJNT_FREE:
+            suffixes = ["_x", "_y", "_z", "_rx", "_ry", "_rz"]
+        elif kind == _J.mjJNT_BALL:
+            suffixes = ["_rx", "_ry", "_rz"]
+        else:
+            suffixes = [""]
+        adr = model.jnt_dofadr[j]
+        for i, suffix in enumerate(suffixes):
+            names[adr + i] = joint + suffix
+    return names
+
+
+def contact_forces_world(estimate: Estimate, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(pos (n, 3), force (n, 3)) of the n contacts of knot k, world frame, m and N.
+
+    force = frame.T @ (impulse / h)[:3]: normal and the two tangential components (torsional
+    and rolling components are torques and not drawn); a condim-1 contact has only the normal.
+    """
+    c = estimate.constraints[k]
+    n = len(c.contacts.pos)
+    f_contact = np.zeros((n, 3))
+    for i in range(n):
+        impulse = c.contact_impulse(i)
+        f_contact[i, : min(3, len(impulse))] = impulse[:3] / c.h
+    force = np.einsum("nji,nj->ni", c.contacts.frame.reshape(n, 3, 3), f_contact)
+    return c.contacts.pos.reshape(n, 3), force
+
+
+# -- logging ----------------------------------------------------------------------------------
+def _log_all(
+    rec: rr.RecordingStream, estimate: Estimate, model: mujoco.MjModel, log: Log | None
+) -> None:
+    t0_ns = _start_ns(estimate, log)
+    rec.send_recording_start_time_nanos(t0_ns)
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    knots = estimate.t_ns - np.int64(t0_ns)  # (T,) int64 ns since the start
+    _log_model(rec, model, estimate, knots)
+    _log_contacts(rec, model, estimate, knots)
+    if log is not None:
+        _log_measurements(rec, log, t0_ns)
+    dofs = dof_names(model)
+    _log_residuals(rec, estimate, dofs, knots)
+    _log_imu_bias(rec, estimate, knots)
+    _log_series_group(rec, "plots/uncertainty", dofs, estimate.qpos_std, knots)
+
+
+def _log_model(
+    rec: rr.RecordingStream, model: mujoco.MjModel, estimate: Estimate, knots: np.ndarray
+) -> None:
+    """Geoms once (static, in their body's frame), body poses per knot (mj_kinematics)."""
+    bodies = sorted({int(model.geom_bodyid[g]) for g in _visible_geoms(model)})
+    for g in _visible_geoms(model):
+        entity = f"{_body_path(model, int(model.geom_bodyid[g]))}/{_geom_name(model, g)}"
+        shape = _geom_archetype(model, g)
+        if shape is None:
+            continue
+        rec.log(
+            entity,
+            rr.Transform3D(
+                translation=model.geom_pos[g],
+                quaternion=rr.Quaternion(xyzw=_xyzw(model.geom_quat[g])),
+            ),
+            shape,
+            static=True,
+        )
+    xpos, xquat = _body_poses(model, estimate.qpos)
+    for b in bodies:
+        if b == 0:
+            continue
+        if model.body_weldid[b] == 0:  # welded to the world: one static pose
+            rec.log(
+                _body_path(model, b),
+                rr.Transform3D(
+                    translation=xpos[0, b], quaternion=rr.Quaternion(xyzw=_xyzw(xquat[0, b]))
+                ),
+                static=True,
+            )
+            continue
+        rec.send_columns(
+            _body_path(model, b),
+            indexes=[_time(knots)],
+            columns=rr.Transform3D.columns(translation=xpos[:, b], quaternion=_xyzw(xquat[:, b])),
+        )
+
+
+def _log_contacts(
+    rec: rr.RecordingStream, model: mujoco.MjModel, estimate: Estimate, knots: np.ndarray
+) -> None:
+    """Contact arrows and points per knot, and the net normal force on each body."""
+    scale = FORCE_SCALE_M_PER_WEIGHT / max(_weight_n(model), 1e-9)
+    counts = np.zeros(estimate.T, dtype=np.int64)
+    origins, vectors, colors, labels = [], [], [], []
+    normal_force: dict[int, np.ndarray] = {}
+    for k, c in enumerate(estimate.constraints):
+        pos, force = contact_forces_world(estimate, k)
+        counts[k] = len(pos)
+        for i in range(len(pos)):
+            branch = c.contact_branch(i)
+            bodies = [int(model.geom_bodyid[g]) for g in c.contacts.geom[i]]
+            f_n = float(c.contact_impulse(i)[0] / c.h)  # normal component, N
+            for b in set(bodies) - {0}:
+                normal_force.setdefault(b, np.zeros(estimate.T))[k] += f_n
+            names = "–".join(_body_name(model, b) for b in bodies if b != 0) or "world"
+            origins.append(pos[i])
+            vectors.append(force[i] * scale)
+            colors.append(BRANCH_COLORS[branch])
+            labels.append(f"{names} {np.linalg.norm(force[i]):.0f} N {branch.name.lower()}")
+    p_world = np.reshape(origins, (-1, 3))
+    rgb = np.reshape(colors, (-1, 3)).astype(np.uint8)
+    rec.send_columns(
+        "world/contacts",
+        indexes=[_time(knots)],
+        columns=rr.Arrows3D.columns(
+            origins=p_world,
+            vectors=np.reshape(vectors, (-1, 3)),
+            colors=rgb,
+            labels=labels,
+        ).partition(counts),
+    )
+    rec.send_columns(
+        "world/contacts/points",
+        indexes=[_time(knots)],
+        columns=rr.Points3D.columns(positions=p_world, colors=rgb).partition(counts),
+    )
+    rec.log("world/contacts", rr.Arrows3D.from_fields(radii=0.008), static=True)
+    rec.log("world/contacts/points", rr.Points3D.from_fields(radii=0.015), static=True)
+    for b in sorted(normal_force):
+        _log_series(
+            rec,
+            f"plots/contact_force/{_body_name(model, b, escape=True)}",
+            _body_name(model, b),
+            normal_force[b],
+            knots,
+        )
+
+
+def _log_measurements(rec: rr.RecordingStream, log: Log, t0_ns: int) -> None:
+    """Mocap poses as moving axes, markers as points, on their own sample times."""
+    for n, m in enumerate(log.measurements.values()):
+        if not len(m) or m.kind not in (*POSE_KINDS, "markers"):
+            continue
+        color = MEASUREMENT_COLORS[n % len(MEASUREMENT_COLORS)]
+        base = f"world/measurements/{_part(m.stream)}"
+        if m.kind == "markers":
+            finite = np.all(np.isfinite(m.values), axis=2)  # (N, E)
+            element = np.broadcast_to(np.arange(len(m.elements)), finite.shape)[finite]
+            rec.send_columns(
+                base,
+                indexes=[_time(m.t_ns - t0_ns)],
+                columns=rr.Points3D.columns(
+                    positions=m.values[finite], labels=[m.elements[e] for e in element]
+                ).partition(finite.sum(axis=1)),
+            )
+            rec.log(base, rr.Points3D.from_fields(radii=0.012, colors=color), static=True)
+            continue
+        for e, name in enumerate(m.elements):
+            values = m.values[:, e, :]
+            keep = np.all(np.isfinite(values), axis=1)
+            if not keep.any():
+                continue
+            entity = f"{base}/{_part(name)}"
+            rec.send_columns(
+                entity,
+                indexes=[_time(m.t_ns[keep] - t0_ns)],
+                columns=rr.Transform3D.columns(
+                    translation=values[keep, :3], quaternion=_xyzw(values[keep, 3:7])
+                ),
+            )
+            rec.log(entity, rr.TransformAxes3D(0.1), static=True)
+
+
+def _log_residuals(
+    rec: rr.RecordingStream, estimate: Estimate, dofs: Sequence[str], knots: np.ndarray
+) -> None:
+    for factor, r in estimate.residuals.items():
+        r = np.asarray(r).reshape(estimate.T, -1)
+        if factor == "physics":
+            names = list(dofs) if r.shape[1] == len(dofs) else _indexed("r", r.shape[1])
+            _log_series_group(rec, "plots/physics", names, r, knots)
+        else:
+            names = [f"{factor}[{i}]" for i in range(r.shape[1])]
+            entity = f"plots/sensors/{_part(factor)}"
+            for i, name in enumerate(names):
+                _log_series(rec, f"{entity}/{i}", name, r[:, i], knots)
+
+
+def _log_imu_bias(rec: rr.RecordingStream, estimate: Estimate, knots: np.ndarray) -> None:
+    for stream, bias in estimate.imu_bias.items():
+        bias = np.asarray(bias).reshape(estimate.T, 6)
+        for j, quantity in enumerate(("accel", "gyro")):
+            for i, axis in enumerate("xyz"):
+                _log_series(
+                    rec,
+                    f"plots/imu_bias/{_part(stream)}/{quantity}/{axis}",
+                    f"{stream} {quantity} {axis}",
+                    bias[:, 3 * j + i],
+                    knots,
+                    color=XYZ_COLORS[i],
+                )
+
+
+def _log_series_group(
+    rec: rr.RecordingStream,
+    root: str,
+    names: Sequence[str],
+    values: np.ndarray,
+    knots: np.ndarray,
+) -> None:
+    """One series per column of values (T, len(names)), at `root/<name>`."""
+    for i, name in enumerate(names):
+        _log_series(rec, f"{root}/{_part(name)}", name, values[:, i], knots)
+
+
+def _log_series(
+    rec: rr.RecordingStream,
+    entity: str,
+    name: str,
+    values: np.ndarray,
+    knots: np.ndarray,
+    color: tuple[int, int, int] | None = None,
+) -> None:
+    """A scalar series (T,) on the knot times, NaN knots left out."""
+    keep = np.isfinite(values)
+    if not keep.any():
+        return
+    rec.send_columns(
+        entity, indexes=[_time(knots[keep])], columns=rr.Scalars.columns(scalars=values[keep])
+    )
+    rec.log(entity, rr.SeriesLines(names=name, colors=color), static=True)
+
+
+# -- geometry ---------------------------------------------------------------------------------
+def _geom_archetype(model: mujoco.MjModel, g: int) -> rr.AsComponents | None:
+    """The geom as a Rerun primitive in its own frame (None for hfields and SDFs)."""
+    size = model.geom_size[g]
+    color = _geom_color(model, g)
+    kind = model.geom_type[g]
+    if kind == _G.mjGEOM_PLANE:
+        half = [s if s > 0 else FLOOR_HALF_EXTENT_M for s in size[:2]]
+        return rr.Boxes3D(
+            half_sizes=[[half[0], half[1], FLOOR_THICKNESS_M / 2]],
+            centers=[[0.0, 0.0, -FLOOR_THICKNESS_M / 2]],
+            colors=[color],
+            fill_mode="solid",
+        )
+    if kind == _G.mjGEOM_BOX:
+        return rr.Boxes3D(half_sizes=[size], colors=[color], fill_mode="solid")
+    if kind == _G.mjGEOM_SPHERE:
+        return rr.Ellipsoids3D(half_sizes=[[size[0]] * 3], colors=[color], fill_mode="solid")
+    if kind == _G.mjGEOM_ELLIPSOID:
+        return rr.Ellipsoids3D(half_sizes=[size], colors=[color], fill_mode="solid")
+    if kind == _G.mjGEOM_CAPSULE:  # Rerun's capsule runs from its origin along +z
+        return rr.Capsules3D(
+            lengths=[2 * size[1]],
+            radii=[size[0]],
+            translations=[[0.0, 0.0, -size[1]]],
+            colors=[color],
+        )
+    if kind == _G.mjGEOM_CYLINDER:
+        return rr.Cylinders3D(
+            lengths=[2 * size[1]], radii=[size[0]], colors=[color], fill_mode="solid"
+        )
+    if kind == _G.mjGEOM_MESH:
+        mesh = model.geom_dataid[g]
+        v0, nv = model.mesh_vertadr[mesh], model.mesh_vertnum[mesh]
+        f0, nf = model.mesh_faceadr[mesh], model.mesh_facenum[mesh]
+        return rr.Mesh3D(
+            vertex_positions=model.mesh_vert[v0 : v0 + nv],
+            triangle_indices=model.mesh_face[f0 : f0 + nf],
+            albedo_factor=color,
+        )
+    return None
+
+
+def _geom_color(model: mujoco.MjModel, g: int) -> tuple[int, int, int, int]:
+    rgba = model.geom_rgba[g]
+    mat = model.geom_matid[g]
+    if mat >= 0 and np.allclose(rgba, (0.5, 0.5, 0.5, 1.0)):  # MuJoCo's default: use material
+        rgba = model.mat_rgba[mat]
+    r, gr, b, a = (round(255 * float(np.clip(x, 0, 1))) for x in rgba)
+    return r, gr, b, a
+
+
+def _visible_geoms(model: mujoco.MjModel) -> list[int]:
+    return [
+        g
+        for g in range(model.ngeom)
+        if model.geom_group[g] < VISIBLE_GEOM_GROUPS and model.geom_rgba[g][3] > 0
+    ]
+
+
+def _body_poses(model: mujoco.MjModel, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(xpos (T, nbody, 3), xquat (T, nbody, 4) w, x, y, z) of every body, world frame."""
+    d = mujoco.MjData(model)
+    n = len(qpos)
+    xpos = np.empty((n, model.nbody, 3))
+    xquat = np.empty((n, model.nbody, 4))
+    for k in range(n):
+        d.qpos[:] = qpos[k]
+        mujoco.mj_kinematics(model, d)
+        xpos[k] = d.xpos
+        xquat[k] = d.xquat
+    return xpos, xquat
+
+
+def _weight_n(model: mujoco.MjModel) -> float:
+    """Total mass · |gravity|, N."""
+    return float(model.body_subtreemass[0] * np.linalg.norm(model.opt.gravity))
+
+
+# -- names, times, conventions ----------------------------------------------------------------
+def _body_name(model: mujoco.MjModel, b: int, *, escape: bool = False) -> str:
+    name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) or f"body{b}"
+    return _part(name) if escape else name
+
+
+def _body_path(model: mujoco.MjModel, b: int) -> str:
+    return f"world/model/{_body_name(model, b, escape=True)}"
+
+
+def _geom_name(model: mujoco.MjModel, g: int) -> str:
+    return _part(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom{g}")
+
+
+def _part(name: str) -> str:
+    """One entity-path part (model and stream names may hold '/', spaces, dots)."""
+    return rr.escape_entity_path_part(name)
+
+
+def _indexed(prefix: str, n: int) -> list[str]:
+    return [f"{prefix}{i}" for i in range(n)]
+
+
+def _xyzw(quat_wxyz: np.ndarray) -> np.ndarray:
+    """(..., 4) quaternions w, x, y, z (MuJoCo, ROS decode) → x, y, z, w (Rerun)."""
+    q = np.asarray(quat_wxyz, dtype=float)
+    return np.concatenate([q[..., 1:], q[..., :1]], axis=-1)
+
+
+def _start_ns(estimate: Estimate, log: Log | None) -> int:
+    """The time origin: the earliest knot or log sample, int ns."""
+    starts = [int(estimate.t_ns[0])] if estimate.T else []
+    if log is not None:
+        starts += [int(m.t_ns[0]) for m in log.measurements.values() if len(m)]
+    return min(starts) if starts else 0
+
+
+def _time(offset_ns: np.ndarray) -> rr.TimeColumn:
+    """The `time` timeline from int ns offsets since the start (exact; shown in seconds)."""
+    return rr.TimeColumn("time", duration=np.asarray(offset_ns, np.int64).astype("timedelta64[ns]"))
