@@ -128,6 +128,25 @@ def test_joint_state_in_any_order_with_any_subset(tmp_path):
     assert joints.bad.total == 0
 
 
+def test_occluded_markers_are_missing_not_bad(tmp_path):
+    """A frame without one marker keeps the visible markers; NaN marks the occluded one."""
+    config = load_config(rl.write_robot(tmp_path))
+    s = rl.T0
+    both = [(rl.USE_INDEX, 7, "", (1, 2, 3)), (rl.USE_NAME, 0, "knee", (4, 5, 6))]
+    knee_only = [(rl.USE_NAME, 0, "knee", (7, 8, 9))]
+    msgs = [
+        rl.Msg("/mocap/markers", t.MARKERS, s, rl.markers(s, both)),
+        rl.Msg("/mocap/markers", t.MARKERS, s + 1, rl.markers(s + 1, knee_only)),
+    ]
+    rl.write_mcap(tmp_path / "m.mcap", msgs)
+    markers = read_log(tmp_path / "m.mcap", config, require=False).measurements["markers"]
+    nan = np.nan
+    np.testing.assert_array_equal(
+        markers.values, [[[1, 2, 3], [4, 5, 6]], [[nan, nan, nan], [7, 8, 9]]]
+    )
+    assert markers.bad.total == 0
+
+
 def test_log_time_stamps_and_per_topic_time_offsets(sample, tmp_path):
     _, path, _ = sample
     text = rl.SAMPLE_CONFIG.replace(

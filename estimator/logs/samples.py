@@ -281,7 +281,9 @@ class _StreamState:
         if self.columns is not None:
             values = values[:, self.columns]
         if record.present is None:
-            if not np.isfinite(values).all():
+            # an entry absent from the message (an occluded marker) is missing, not bad
+            carried = values if complete else values[found]
+            if not np.isfinite(carried).all():
                 raise BadSampleError("nan", "NaN or Inf in a used field")
         else:
             present = record.present[index] if complete else _gather(record.present, index, found)

@@ -1,0 +1,561 @@
+"""The estimation problem for a window of knots: variables, factors, residuals and Jacobians.
+
+Variables. Knot k holds the configuration q_k on the model's own manifolds, perturbed as
+q_k ⊕ x_k = mj_integratePos(q_k, x_k, 1): free joints as poses (world position, body-frame
+rotation), ball joints as rotations, hinges and slides as vectors. Each IMU stream adds a
+bias b_k = (accelerometer, gyro) per knot. The GTSAM key of knot k is z_k = (x_k, b_k).
+
+Discrete-time kinematics (the Euler step of the paper's eq. 3):
+
+    v_k = (q_k ⊖ q_{k−1}) / h,    a_k = (v_{k+1} − v_k) / h
+
+Factors, all on (z_{k−1}, z_k, z_{k+1}) for the interior knots k = 1 … T−2:
+
+    physics   W (u(q_k, v_k, a_k) − u_known_k)          u: the analytic inverse, eq. 12
+    sensors   W (s(q_k, v_k, a_k) + b_k − s_measured_k)  MuJoCo's sensors at the same state
+    prior     a_k / σ_a                                   a weak smoothness prior
+    bias      (b_{k+1} − b_k) / (σ_walk √h)               random walk
+
+Sensor samples are brought to the knot times (linear interpolation; IMU samples averaged
+over the knot's interval, σ/√n). Rows are whitened here, robust (Huber) weights come from
+GTSAM's mEstimator, and each knot's rows form one GTSAM JacobianFactor.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import gtsam
+import mujoco
+import numpy as np
+
+from estimator.config import Config, StreamConfig
+from estimator.errors import ConfigError
+from estimator.logs.align import resample
+from estimator.logs.measurements import Measurement
+from physics.dynamics import make_dynamics
+from physics.softness import Softness
+
+_OBJ = mujoco.mjtObj
+_SENS = mujoco.mjtSensor
+
+# the [estimator] section of a config: key → (default, meaning)
+SETTINGS: Mapping[str, tuple[object, str]] = {
+    "path": ("native", "physics path for the residuals: native | reference"),
+    "h": (0.0, "knot spacing in s (0: the model's timestep)"),
+    "physics_std_unactuated": (20.0, "σ of u on dofs no actuator drives, N or N·m"),
+    "physics_std_actuated": (20.0, "σ of u − (actuator force of the commands), N or N·m"),
+    "accel_prior_std": (200.0, "σ of the smoothness prior on a_k, units/s²"),
+    "huber_k": (2.0, "Huber threshold on a whitened residual block"),
+    "window_s": (4.0, "length of one smoothing window, s"),
+    "overlap_s": (0.5, "overlap of consecutive windows, s"),
+    "max_iterations": (30, "Levenberg–Marquardt iterations per window"),
+    "bias_prior_accel": (0.5, "σ of the first accelerometer bias, m/s²"),
+    "bias_prior_gyro": (0.05, "σ of the first gyro bias, rad/s"),
+    "fd_eps": (1e-6, "finite-difference step of mjd_inverseFD"),
+}
+
+
+@dataclass(frozen=True)
+class Settings:
+    path: str = "native"
+    h: float = 0.0
+    physics_std_unactuated: float = 20.0
+    physics_std_actuated: float = 20.0
+    accel_prior_std: float = 200.0
+    huber_k: float = 2.0
+    window_s: float = 4.0
+    overlap_s: float = 0.5
+    max_iterations: int = 30
+    bias_prior_accel: float = 0.5
+    bias_prior_gyro: float = 0.05
+    fd_eps: float = 1e-6
+
+    @classmethod
+    def from_config(cls, config: Config) -> Settings:
+        """Read the optional [estimator] table; unknown keys and bad values name themselves."""
+        table = dict(config.sections.get("estimator", {}))
+        unknown = sorted(set(table) - set(SETTINGS))
+        if unknown:
+            raise ConfigError(
+                f"{config.path}: estimator.{unknown[0]} is not a setting "
+                f"(settings: {', '.join(SETTINGS)})"
+            )
+        values: dict[str, Any] = {}
+        for key, value in table.items():
+            default = SETTINGS[key][0]
+            if isinstance(default, str):
+                if value not in ("native", "reference"):
+                    raise ConfigError(
+                        f"{config.path}: estimator.{key} = {value!r}; expected 'native' or "
+                        "'reference'"
+                    )
+            elif not isinstance(value, int | float) or isinstance(value, bool) or value < 0:
+                raise ConfigError(
+                    f"{config.path}: estimator.{key} = {value!r}; expected a number ≥ 0 "
+                    f"({SETTINGS[key][1]})"
+                )
+            values[key] = int(value) if isinstance(default, int) else value
+        return cls(**values)
+
+
+@dataclass(frozen=True)
+class SensorBlock:
+    """One stream's rows in the residual: which sensordata entries and how to compare them.
+
+    rows:    (n,) sensordata indices of the prediction, in measurement component order
+    kind:    "vector" (p − m), "quat" (Log(m⁻¹ p), 4 sensordata rows → 3 residual rows)
+    values:  (T, n_meas) the measurement at each knot (NaN: no measurement)
+    sigma:   (n_res,) per residual row
+    bias:    slice of the bias vector added to the prediction (IMU), or None
+    """
+
+    stream: str
+    kind: str
+    rows: np.ndarray
+    values: np.ndarray
+    sigma: np.ndarray
+    bias: slice | None = None
+
+
+@dataclass
+class Problem:
+    """Everything fixed about one window: the model with sensors, the grid and measurements."""
+
+    model: mujoco.MjModel
+    h: float
+    t_ns: np.ndarray  # (T,) knot times
+    blocks: list[SensorBlock]
+    qfrc_known: np.ndarray  # (T, nv), NaN where no force is known
+    physics_sigma: np.ndarray  # (T, nv), inf where the dof is left free
+    settings: Settings
+    nb: int  # bias dimensions per knot (6 per IMU stream)
+    imu_streams: list[str] = field(default_factory=list)
+    bias_walk: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (nb,) per √s
+
+    @property
+    def T(self) -> int:
+        return len(self.t_ns)
+
+    @property
+    def nz(self) -> int:
+        return self.model.nv + self.nb
+
+
+# ---------------------------------------------------------------------------------------------
+# building the problem
+
+
+def model_with_sensors(
+    config: Config, base: mujoco.MjModel | None = None
+) -> tuple[mujoco.MjModel, dict[str, list[str]]]:
+    """The config's model with one MuJoCo sensor per measured quantity, named after the stream.
+
+    Returns the compiled model and, per stream, the names of its sensors in measurement order.
+    """
+    spec = mujoco.MjSpec.from_file(str(config.model_path))
+    names: dict[str, list[str]] = {}
+    for stream in config.streams.values():
+        names[stream.name] = _add_sensors(spec, stream)
+    model = spec.compile()
+    if base is not None:  # keep the caller's options (e.g. solver settings)
+        model.opt.timestep = base.opt.timestep
+    return model, names
+
+
+def _add_sensors(spec: mujoco.MjSpec, stream: StreamConfig) -> list[str]:
+    added: list[str] = []
+
+    def add(kind: mujoco.mjtSensor, objtype: mujoco.mjtObj, objname: str, tag: str) -> None:
+        sensor = spec.add_sensor()
+        sensor.name = f"physfuse/{stream.name}/{objname}/{tag}"
+        sensor.type = kind
+        sensor.objtype = objtype
+        sensor.objname = objname
+        added.append(sensor.name)
+
+    element_obj = {"body": _OBJ.mjOBJ_XBODY, "site": _OBJ.mjOBJ_SITE}
+    if stream.kind in ("pose", "tf", "rigid_bodies"):
+        for element in stream.elements:
+            obj = element_obj[stream.element_type]
+            add(_SENS.mjSENS_FRAMEPOS, obj, element, "pos")
+            add(_SENS.mjSENS_FRAMEQUAT, obj, element, "quat")
+    elif stream.kind == "markers":
+        for element in stream.elements:
+            add(_SENS.mjSENS_FRAMEPOS, _OBJ.mjOBJ_SITE, element, "pos")
+    elif stream.kind == "imu":
+        site = stream.elements[0]
+        add(_SENS.mjSENS_ACCELEROMETER, _OBJ.mjOBJ_SITE, site, "accel")
+        add(_SENS.mjSENS_GYRO, _OBJ.mjOBJ_SITE, site, "gyro")
+    elif stream.kind == "joint_state":
+        for element in stream.elements:
+            add(_SENS.mjSENS_JOINTPOS, _OBJ.mjOBJ_JOINT, element, "pos")
+    elif stream.kind == "wrench":
+        site = stream.elements[0]
+        add(_SENS.mjSENS_FORCE, _OBJ.mjOBJ_SITE, site, "force")
+        add(_SENS.mjSENS_TORQUE, _OBJ.mjOBJ_SITE, site, "torque")
+    return added
+
+
+def knot_grid(measurements: Mapping[str, Measurement], h: float) -> np.ndarray:
+    """(T,) knot times spanning the measured streams (commands excluded), step h."""
+    starts, ends = [], []
+    for m in measurements.values():
+        if len(m) and m.kind != "command":
+            starts.append(int(m.t_ns[0]))
+            ends.append(int(m.t_ns[-1]))
+    if not starts:
+        raise ConfigError("no measurements to estimate from: every mapped stream is empty")
+    step = round(h * 1e9)
+    return np.arange(min(starts), max(ends) + 1, step, dtype=np.int64)
+
+
+def build_problem(
+    config: Config,
+    measurements: Mapping[str, Measurement],
+    settings: Settings,
+    t_ns: np.ndarray | None = None,
+    compiled: tuple[mujoco.MjModel, dict[str, list[str]]] | None = None,
+) -> Problem:
+    """Map the measurements onto the knots of `t_ns` (default: the whole log).
+
+    compiled: the result of `model_with_sensors(config)`, to reuse across windows.
+    """
+    model, sensor_names = compiled or model_with_sensors(config)
+    Softness().apply(model)
+    h = settings.h or float(model.opt.timestep)
+    if abs(h - model.opt.timestep) > 1e-12:
+        model.opt.timestep = h
+    if t_ns is None:
+        t_ns = knot_grid(measurements, h)
+    blocks: list[SensorBlock] = []
+    imu_streams: list[str] = []
+    walks: list[np.ndarray] = []
+    nb = 0
+    for name, stream in config.streams.items():
+        m = measurements.get(name)
+        if m is None or not len(m) or stream.kind == "command":
+            continue
+        adr = [_sensor_rows(model, s) for s in sensor_names[name]]
+        noise = stream.noise
+        if stream.kind in ("pose", "tf", "rigid_bodies"):
+            values = interpolated_at_knots(m, t_ns)  # (T, E, 7)
+            for e in range(len(stream.elements)):
+                pos_rows, quat_rows = adr[2 * e], adr[2 * e + 1]
+                blocks.append(
+                    SensorBlock(
+                        name,
+                        "vector",
+                        pos_rows,
+                        values[:, e, :3],
+                        np.full(3, noise["position_std_m"]),
+                    )
+                )
+                blocks.append(
+                    SensorBlock(
+                        name,
+                        "quat",
+                        quat_rows,
+                        values[:, e, 3:7],
+                        np.full(3, noise["orientation_std_rad"]),
+                    )
+                )
+        elif stream.kind == "markers":
+            values = interpolated_at_knots(m, t_ns)
+            for e in range(len(stream.elements)):
+                blocks.append(
+                    SensorBlock(
+                        name,
+                        "vector",
+                        adr[e],
+                        values[:, e, :3],
+                        np.full(3, noise["position_std_m"]),
+                    )
+                )
+        elif stream.kind == "imu":
+            values, counts = averaged_at_knots(m, t_ns)
+            scale = 1.0 / np.sqrt(np.maximum(counts, 1))
+            accel = values[:, 0, 7:10]
+            gyro = values[:, 0, 4:7]
+            bias = slice(nb, nb + 6)
+            blocks.append(
+                SensorBlock(
+                    name, "vector", adr[0], accel, np.full(3, noise["accel_std"]), slice(nb, nb + 3)
+                )
+            )
+            blocks.append(
+                SensorBlock(
+                    name,
+                    "vector",
+                    adr[1],
+                    gyro,
+                    np.full(3, noise["gyro_std"]),
+                    slice(nb + 3, nb + 6),
+                )
+            )
+            # averaging n samples per knot: σ/√n (per knot, applied at whitening)
+            blocks[-2] = _scaled(blocks[-2], scale)
+            blocks[-1] = _scaled(blocks[-1], scale)
+            imu_streams.append(name)
+            walks.append(
+                np.r_[np.full(3, noise["accel_bias_walk"]), np.full(3, noise["gyro_bias_walk"])]
+            )
+            nb = bias.stop
+        elif stream.kind == "joint_state":
+            values = interpolated_at_knots(m, t_ns)
+            position = values[:, :, 0]
+            for e in range(len(stream.elements)):
+                blocks.append(
+                    SensorBlock(
+                        name,
+                        "vector",
+                        adr[e],
+                        position[:, e : e + 1],
+                        np.array([noise["position_std"]]),
+                    )
+                )
+        elif stream.kind == "wrench":
+            values, _ = averaged_at_knots(m, t_ns)
+            blocks.append(
+                SensorBlock(
+                    name, "vector", adr[0], values[:, 0, :3], np.full(3, noise["force_std"])
+                )
+            )
+            blocks.append(
+                SensorBlock(
+                    name, "vector", adr[1], values[:, 0, 3:6], np.full(3, noise["torque_std"])
+                )
+            )
+    qfrc_known, sigma = _known_forces(model, config, measurements, t_ns, settings)
+    bias_walk = np.concatenate(walks) if walks else np.zeros(0)
+    return Problem(model, h, t_ns, blocks, qfrc_known, sigma, settings, nb, imu_streams, bias_walk)
+
+
+def _scaled(block: SensorBlock, per_knot: np.ndarray) -> SensorBlock:
+    """A block whose σ is multiplied per knot: sigma becomes (T, n)."""
+    sigma = np.outer(per_knot, block.sigma)
+    return SensorBlock(block.stream, block.kind, block.rows, block.values, sigma, block.bias)
+
+
+def _sensor_rows(model: mujoco.MjModel, name: str) -> np.ndarray:
+    i = mujoco.mj_name2id(model, _OBJ.mjOBJ_SENSOR, name)
+    adr, dim = model.sensor_adr[i], model.sensor_dim[i]
+    return np.arange(adr, adr + dim)
+
+
+def interpolated_at_knots(m: Measurement, t_ns: np.ndarray) -> np.ndarray:
+    """(T, E, K) linear interpolation (quaternions normalized) between the samples that
+    bracket each knot; NaN across gaps longer than 2.5 sample periods."""
+    period = int(np.median(np.diff(m.t_ns))) if len(m) > 1 else 0
+    return resample(m, t_ns, max_gap_ns=int(2.5 * period))
+
+
+def averaged_at_knots(m: Measurement, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T, E, K) mean of the samples within ±h/2 of each knot (NaN where none) and (T,) counts."""
+    h_ns = int(t_ns[1] - t_ns[0]) if len(t_ns) > 1 else 1
+    edges = np.concatenate([t_ns - h_ns // 2, [t_ns[-1] + h_ns - h_ns // 2]])
+    index = np.searchsorted(edges, m.t_ns, side="right") - 1
+    ok = (index >= 0) & (index < len(t_ns))
+    sums = np.zeros((len(t_ns), *m.values.shape[1:]))
+    n = np.zeros(len(t_ns))
+    np.add.at(sums, index[ok], m.values[ok])
+    np.add.at(n, index[ok], 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return sums / n[:, None, None], n
+
+
+def _known_forces(
+    model: mujoco.MjModel,
+    config: Config,
+    measurements: Mapping[str, Measurement],
+    t_ns: np.ndarray,
+    settings: Settings,
+) -> tuple[np.ndarray, np.ndarray]:
+    """u_known (T, nv) and the physics factor's σ (T, nv).
+
+    Unactuated dofs: u_known = 0 with σ_unactuated. Actuated dofs: the force the logged
+    commands produce through the actuators (qfrc_actuator; for motors independent of the
+    state), or the measured joint efforts, with σ_actuated; left free (σ = ∞) when neither
+    is logged.
+    """
+    T, nv = len(t_ns), model.nv
+    d = mujoco.MjData(model)
+    moment = _actuator_moment(model, d)  # (nu, nv)
+    actuated = np.any(moment != 0, axis=0)
+    known = np.full((T, nv), np.nan)
+    known[:, ~actuated] = 0.0
+    sigma = np.full((T, nv), np.inf)
+    sigma[:, ~actuated] = settings.physics_std_unactuated
+    commands = [m for m in measurements.values() if m.kind == "command" and len(m)]
+    if commands:
+        ctrl = np.zeros((T, model.nu))
+        have = np.zeros((T, model.nu), dtype=bool)
+        for m in commands:
+            held = _hold(m, t_ns)  # (T, E)
+            for e, actuator in enumerate(m.elements):
+                a = mujoco.mj_name2id(model, _OBJ.mjOBJ_ACTUATOR, actuator)
+                ctrl[:, a] = np.nan_to_num(held[:, e])
+                have[:, a] = np.isfinite(held[:, e])
+        mujoco.mj_forward(model, d)
+        for k in range(T):
+            d.ctrl[:] = ctrl[k]
+            mujoco.mj_fwdActuation(model, d)
+            driven = np.any(moment[have[k]] != 0, axis=0)
+            known[k, driven] = d.qfrc_actuator[driven]
+            sigma[k, driven] = settings.physics_std_actuated
+    else:
+        for m in measurements.values():
+            if m.kind != "joint_state" or not len(m):
+                continue
+            effort = _hold(m, t_ns, component=2)
+            for e, joint in enumerate(m.elements):
+                j = mujoco.mj_name2id(model, _OBJ.mjOBJ_JOINT, joint)
+                dof = model.jnt_dofadr[j]
+                ok = np.isfinite(effort[:, e])
+                known[ok, dof] = effort[ok, e]
+                sigma[ok, dof] = settings.physics_std_actuated
+    return known, sigma
+
+
+def _hold(m: Measurement, t_ns: np.ndarray, component: int = 0) -> np.ndarray:
+    """(T, E) the last sample at or before each knot (NaN before the first)."""
+    index = np.searchsorted(m.t_ns, t_ns, side="right") - 1
+    out = np.full((len(t_ns), len(m.elements)), np.nan)
+    ok = index >= 0
+    out[ok] = m.values[index[ok], :, component]
+    return out
+
+
+def _actuator_moment(model: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:
+    mujoco.mj_forward(model, d)
+    moment = np.zeros((model.nu, model.nv))
+    mujoco.mju_sparse2dense(
+        moment, d.actuator_moment, d.moment_rownnz, d.moment_rowadr, d.moment_colind
+    )
+    return moment
+
+
+# ---------------------------------------------------------------------------------------------
+# kinematics on the knots
+
+
+def velocities(model: mujoco.MjModel, qpos: np.ndarray, h: float) -> np.ndarray:
+    """(T, nv) v_k = (q_k ⊖ q_{k−1})/h, with v_0 = v_1."""
+    T = len(qpos)
+    v = np.zeros((T, model.nv))
+    for k in range(1, T):
+        mujoco.mj_differentiatePos(model, v[k], h, qpos[k - 1], qpos[k])
+    if T > 1:
+        v[0] = v[1]
+    return v
+
+
+def accelerations(v: np.ndarray, h: float) -> np.ndarray:
+    """(T, nv) a_k = (v_{k+1} − v_k)/h, with a_{T−1} = 0."""
+    a = np.zeros_like(v)
+    a[:-1] = (v[1:] - v[:-1]) / h
+    return a
+
+
+def retract(model: mujoco.MjModel, qpos: np.ndarray, dx: np.ndarray) -> np.ndarray:
+    """(T, nq) q_k ⊕ dx_k on each joint's manifold."""
+    out = qpos.copy()
+    for k in range(len(qpos)):
+        mujoco.mj_integratePos(model, out[k], dx[k], 1.0)
+    return out
+
+
+@dataclass(frozen=True)
+class _RotationDofs:
+    """Where rotations live in qpos/qvel: (qpos address of the quaternion, dof address)."""
+
+    quat_dofs: tuple[tuple[int, int], ...]
+
+    @classmethod
+    def of(cls, model: mujoco.MjModel) -> _RotationDofs:
+        pairs = []
+        for j in range(model.njnt):
+            if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+                pairs.append((model.jnt_qposadr[j] + 3, model.jnt_dofadr[j] + 3))
+            elif model.jnt_type[j] == mujoco.mjtJoint.mjJNT_BALL:
+                pairs.append((model.jnt_qposadr[j], model.jnt_dofadr[j]))
+        return cls(tuple(pairs))
+
+
+def difference_jacobians(
+    model: mujoco.MjModel, rotations: _RotationDofs, q1: np.ndarray, q2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """∂(q2 ⊖ q1)/∂x1 and ∂(q2 ⊖ q1)/∂x2 for right perturbations q ⊕ x, each (nv, nv).
+
+    Identity on vector dofs; on a rotation φ = Log(R1ᵀ R2): ∂φ/∂x2 = J_r⁻¹(φ),
+    ∂φ/∂x1 = −J_r⁻¹(φ) Exp(φ)ᵀ = −J_l⁻¹(φ).
+    """
+    nv = model.nv
+    d1, d2 = -np.eye(nv), np.eye(nv)
+    for qadr, dadr in rotations.quat_dofs:
+        phi = np.zeros(3)
+        mujoco.mju_subQuat(phi, q2[qadr : qadr + 4], q1[qadr : qadr + 4])
+        jr_inv = gtsam.Rot3.LogmapDerivative(phi)
+        exp_phi = gtsam.Rot3.Expmap(phi).matrix()
+        d2[dadr : dadr + 3, dadr : dadr + 3] = jr_inv
+        d1[dadr : dadr + 3, dadr : dadr + 3] = -jr_inv @ exp_phi.T
+    return d1, d2
+
+
+# ---------------------------------------------------------------------------------------------
+# residuals and linearization
+
+
+@dataclass
+class KnotModel:
+    """The inverse dynamics and sensors at knots, for one thread (owns its MjData)."""
+
+    problem: Problem
+    path: str = "native"
+
+    def __post_init__(self) -> None:
+        self.data = mujoco.MjData(self.problem.model)
+        self.model = self.problem.model
+        self.rotations = _RotationDofs.of(self.model)
+        self.reference = (
+            make_dynamics(self.model, "reference") if self.path == "reference" else None
+        )
+
+    def evaluate(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, ...]:
+        """u (nv,) and sensordata (ns,) at one knot."""
+        m, d = self.model, self.data
+        d.qpos[:], d.qvel[:], d.qacc[:] = q, v, a
+        mujoco.mj_inverse(m, d)
+        u = d.qfrc_inverse.copy()
+        if self.reference is not None:
+            u = self.reference.inverse(q, v, a).qfrc_inverse
+        return u, d.sensordata.copy()
+
+    def jacobians(
+        self, q: np.ndarray, v: np.ndarray, a: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """mjd_inverseFD at one knot: ∂u/∂(q, v, a) (nv, nv) and ∂s/∂(q, v, a) (ns, nv)."""
+        m, d = self.model, self.data
+        nv, ns = m.nv, m.nsensordata
+        d.qpos[:], d.qvel[:], d.qacc[:] = q, v, a
+        DfDq, DfDv, DfDa = (np.zeros((nv, nv)) for _ in range(3))
+        DsDq, DsDv, DsDa = (np.zeros((nv, ns)) for _ in range(3))
+        mujoco.mjd_inverseFD(
+            m, d, self.problem.settings.fd_eps, False, DfDq, DfDv, DfDa, DsDq, DsDv, DsDa, None
+        )
+        return DfDq.T, DfDv.T, DfDa.T, DsDq.T, DsDv.T, DsDa.T
+
+
+def quat_error_jacobian(pred: np.ndarray, meas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """e = Log(meas⁻¹ ⊗ pred) (3,) and ∂e/∂pred (3, 4) for a linear change of pred.
+
+    pred ⊗ Exp(ξ) ≈ pred + dq gives ξ = 2 Im(pred* ⊗ dq); then de = J_r⁻¹(e) ξ.
+    """
+    e = np.zeros(3)
+    mujoco.mju_subQuat(e, pred, meas)
+    w, x, y, z = pred
+    # Im(q* ⊗ p) for p = (pw, px, py, pz): rows of a 3×4 matrix
+    G = np.array([[-x, w, z, -y], [-y, -z, w, x], [-z, y, -x, w]])
+    return e, gtsam.Rot3.LogmapDerivative(e) @ (2.0 * G)

@@ -1,0 +1,355 @@
+"""Estimation of a whole log: initialize from the measurements, smooth in overlapping windows,
+stitch, and collect the forces, contacts, uncertainty and residuals of the result."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from estimator.config import Config
+from estimator.estimate import Estimate
+from estimator.logs.measurements import Measurement
+from estimator.problem import (
+    Problem,
+    Settings,
+    accelerations,
+    build_problem,
+    interpolated_at_knots,
+    knot_grid,
+    model_with_sensors,
+    velocities,
+)
+from estimator.smoother import Linearizer, solve_window
+from physics.dynamics import make_dynamics
+
+_OBJ = mujoco.mjtObj
+
+
+@dataclass
+class Summary:
+    """What the terminal and summary.json report about one estimation."""
+
+    duration_s: float
+    knots: int
+    h: float
+    windows: int
+    iterations: list[int]
+    converged: list[bool]
+    cost_by_type: dict[str, float]
+    largest_residuals: list[dict]
+    wall_time_s: float
+    warnings: list[str] = field(default_factory=list)
+
+
+def estimate(
+    config: Config,
+    measurements: Mapping[str, Measurement],
+    settings: Settings,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[Estimate, Summary]:
+    """Smooth the whole log; `progress(done, total)` is called after each window."""
+    start = time.perf_counter()
+    compiled = model_with_sensors(config)
+    model = compiled[0]
+    h = settings.h or float(model.opt.timestep)
+    t_ns = knot_grid(measurements, h)
+    T = len(t_ns)
+    qpos0 = initial_trajectory(model, measurements, t_ns)
+    W = max(8, round(settings.window_s / h))
+    overlap = min(W // 2, max(4, round(settings.overlap_s / h)))
+    starts = list(range(0, max(T - overlap, 1), W - overlap))
+    qpos = qpos0.copy()
+    nb = None
+    bias: np.ndarray | None = None
+    std = np.full((T, model.nv), np.nan)
+    iterations, converged = [], []
+    warnings: list[str] = []
+    kept_until = 0
+    for i, s in enumerate(starts):
+        e = min(T, s + W)
+        problem = build_problem(config, measurements, settings, t_ns[s:e], compiled)
+        if nb is None:
+            nb = problem.nb
+            bias = np.zeros((T, nb))
+        assert bias is not None
+        init_q = qpos[s:e].copy()
+        init_q[: max(0, kept_until - s)] = qpos[s:kept_until]
+        result = solve_window(problem, init_q, bias[s:e].copy())
+        last = e == T
+        keep_from = s if i == 0 else s + overlap // 2
+        keep_to = e if last else e - overlap // 2
+        qpos[keep_from:keep_to] = result.qpos[keep_from - s : keep_to - s]
+        bias[keep_from:keep_to] = result.bias[keep_from - s : keep_to - s]
+        std[keep_from:keep_to] = result.qpos_std[keep_from - s : keep_to - s]
+        if keep_to < T:  # the next window starts from this one's solution
+            qpos[keep_to:e] = result.qpos[keep_to - s :]
+        kept_until = keep_to
+        warnings.extend(f"window {i + 1}: {w}" for w in result.warnings)
+        iterations.append(result.iterations)
+        converged.append(result.converged)
+        if progress:
+            progress(i + 1, len(starts))
+        if last:
+            break
+    assert bias is not None
+    full = build_problem(config, measurements, settings, t_ns, compiled)
+    est = _collect(full, qpos, bias, std, config)
+    lin = Linearizer(full)
+    try:
+        _, cost_by_type = lin.cost(qpos, bias)
+    finally:
+        lin.close()
+    summary = Summary(
+        duration_s=(t_ns[-1] - t_ns[0]) / 1e9,
+        knots=T,
+        h=h,
+        windows=len(iterations),
+        iterations=iterations,
+        converged=converged,
+        cost_by_type=cost_by_type,
+        largest_residuals=largest_residuals(est, full),
+        wall_time_s=time.perf_counter() - start,
+        warnings=warnings,
+    )
+    return est, summary
+
+
+# ---------------------------------------------------------------------------------------------
+# initialization from the measurements
+
+
+def initial_trajectory(
+    model: mujoco.MjModel, measurements: Mapping[str, Measurement], t_ns: np.ndarray
+) -> np.ndarray:
+    """(T, nq) q_k from mocap (poses, or markers fitted by Kabsch) and joint encoders.
+
+    Knots without a measurement (a dropped first frame, occlusions) are interpolated between
+    measured knots and held at the ends; unmeasured coordinates keep the model's home pose.
+    """
+    T = len(t_ns)
+    home = model.qpos0.copy()
+    key = mujoco.mj_name2id(model, _OBJ.mjOBJ_KEY, "home")
+    if key >= 0:
+        home = model.key_qpos[key].copy()
+    qpos = np.tile(home, (T, 1))
+    measured = np.zeros((T, model.nq), dtype=bool)
+    for m in measurements.values():
+        if not len(m):
+            continue
+        if m.kind in ("pose", "tf", "rigid_bodies"):
+            values = interpolated_at_knots(m, t_ns)
+            for e, name in enumerate(m.elements):
+                _set_free_pose(model, qpos, measured, m.element_type, name, values[:, e])
+        elif m.kind == "markers":
+            _fit_markers(model, qpos, measured, m, interpolated_at_knots(m, t_ns))
+        elif m.kind == "joint_state":
+            values = interpolated_at_knots(m, t_ns)
+            for e, name in enumerate(m.elements):
+                j = mujoco.mj_name2id(model, _OBJ.mjOBJ_JOINT, name)
+                adr = model.jnt_qposadr[j]
+                ok = np.isfinite(values[:, e, 0])
+                qpos[ok, adr] = values[ok, e, 0]
+                measured[ok, adr] = True
+    _fill_gaps(model, qpos, measured)
+    return qpos
+
+
+def _free_joint_of(model: mujoco.MjModel, body: int) -> int:
+    """qpos address of the free joint that moves `body` directly, or −1."""
+    if model.body_jntnum[body] >= 1:
+        j = model.body_jntadr[body]
+        if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+            return int(model.jnt_qposadr[j])
+    return -1
+
+
+def _set_free_pose(
+    model: mujoco.MjModel,
+    qpos: np.ndarray,
+    measured: np.ndarray,
+    element_type: str,
+    name: str,
+    pose: np.ndarray,
+) -> None:
+    """Write a measured world pose (T, 7) of a body or site into its free joint's qpos."""
+    if element_type == "site":
+        site = mujoco.mj_name2id(model, _OBJ.mjOBJ_SITE, name)
+        body = int(model.site_bodyid[site])
+        local_pos, local_quat = model.site_pos[site], model.site_quat[site]
+    else:
+        body = mujoco.mj_name2id(model, _OBJ.mjOBJ_BODY, name)
+        local_pos, local_quat = np.zeros(3), np.array([1.0, 0, 0, 0])
+    adr = _free_joint_of(model, body)
+    if adr < 0:
+        return
+    inv_local = np.zeros(4)
+    mujoco.mju_negQuat(inv_local, local_quat)
+    for k in np.flatnonzero(np.all(np.isfinite(pose), axis=1)):
+        quat = np.zeros(4)
+        mujoco.mju_mulQuat(quat, pose[k, 3:7], inv_local)  # R_body = R_site R_localᵀ
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, quat)
+        qpos[k, adr : adr + 3] = pose[k, :3] - rot.reshape(3, 3) @ local_pos
+        qpos[k, adr + 3 : adr + 7] = quat
+        measured[k, adr : adr + 7] = True
+
+
+def _fit_markers(
+    model: mujoco.MjModel,
+    qpos: np.ndarray,
+    measured: np.ndarray,
+    m: Measurement,
+    values: np.ndarray,
+) -> None:
+    """Kabsch fit of each free body's pose to its markers (≥ 3 visible) at every knot."""
+    sites = [mujoco.mj_name2id(model, _OBJ.mjOBJ_SITE, n) for n in m.elements]
+    bodies = {int(model.site_bodyid[s]) for s in sites}
+    for body in bodies:
+        adr = _free_joint_of(model, body)
+        if adr < 0:
+            continue
+        cols = [i for i, s in enumerate(sites) if model.site_bodyid[s] == body]
+        local = np.array([model.site_pos[sites[i]] for i in cols])  # (n, 3) in body frame
+        for k in range(len(values)):
+            world = values[k, cols, :3]
+            ok = np.all(np.isfinite(world), axis=1)
+            if ok.sum() < 3:
+                continue
+            R, p = _kabsch(local[ok], world[ok])
+            quat = np.zeros(4)
+            mujoco.mju_mat2Quat(quat, R.reshape(-1))
+            qpos[k, adr : adr + 3] = p
+            qpos[k, adr + 3 : adr + 7] = quat
+            measured[k, adr : adr + 7] = True
+
+
+def _kabsch(local: np.ndarray, world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """R, p minimizing Σ‖R local_i + p − world_i‖²."""
+    cl, cw = local.mean(axis=0), world.mean(axis=0)
+    U, _, Vt = np.linalg.svd((local - cl).T @ (world - cw))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, cw - R @ cl
+
+
+def _fill_gaps(model: mujoco.MjModel, qpos: np.ndarray, measured: np.ndarray) -> None:
+    """Interpolate unmeasured knots of measured coordinates; renormalize quaternions."""
+    T = len(qpos)
+    knots = np.arange(T)
+    quat_adr = [
+        model.jnt_qposadr[j] + (3 if model.jnt_type[j] == 0 else 0)
+        for j in range(model.njnt)
+        if model.jnt_type[j] in (0, 1)
+    ]
+    for adr in quat_adr:  # one sign along time, so that interpolation is on the short arc
+        for k in range(1, T):
+            if np.dot(qpos[k, adr : adr + 4], qpos[k - 1, adr : adr + 4]) < 0:
+                qpos[k, adr : adr + 4] *= -1
+    for col in range(model.nq):
+        ok = measured[:, col]
+        if ok.any() and not ok.all():
+            qpos[~ok, col] = np.interp(knots[~ok], knots[ok], qpos[ok, col])
+    for adr in quat_adr:
+        qpos[:, adr : adr + 4] /= np.linalg.norm(qpos[:, adr : adr + 4], axis=1, keepdims=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# the result
+
+
+def _collect(
+    problem: Problem, qpos: np.ndarray, bias: np.ndarray, std: np.ndarray, config: Config
+) -> Estimate:
+    model, h = problem.model, problem.h
+    v = velocities(model, qpos, h)
+    a = accelerations(v, h)
+    dyn = make_dynamics(model, "native")
+    qfrc = np.full((problem.T, model.nv), np.nan)
+    constraints = []
+    for k in range(problem.T):
+        inv = dyn.inverse(qpos[k], v[k], a[k])
+        qfrc[k] = inv.qfrc_inverse
+        constraints.append(inv.constraints)
+    imu_bias = {name: bias[:, 6 * i : 6 * i + 6] for i, name in enumerate(problem.imu_streams)}
+    est = Estimate(
+        t_ns=problem.t_ns,
+        h=h,
+        qpos=qpos,
+        qvel=v,
+        qacc=a,
+        qfrc_inverse=qfrc,
+        qfrc_known=problem.qfrc_known,
+        qpos_std=std,
+        constraints=tuple(constraints),
+        model_name=config.model,
+        imu_bias=imu_bias,
+        residuals=residuals_by_type(problem, qpos, bias, qfrc),
+    )
+    return est
+
+
+def residuals_by_type(
+    problem: Problem, qpos: np.ndarray, bias: np.ndarray, qfrc: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Whitened residuals per knot: "physics" (T, nv) and one (T, rows) array per stream."""
+    T = problem.T
+    out: dict[str, np.ndarray] = {"physics": (qfrc - problem.qfrc_known) / problem.physics_sigma}
+    out["physics"][~np.isfinite(problem.physics_sigma)] = np.nan
+    v = velocities(problem.model, qpos, problem.h)
+    a = accelerations(v, problem.h)
+    d = mujoco.MjData(problem.model)
+    sensordata = np.full((T, problem.model.nsensordata), np.nan)
+    for k in range(1, T - 1):
+        d.qpos[:], d.qvel[:], d.qacc[:] = qpos[k], v[k], a[k]
+        mujoco.mj_inverse(problem.model, d)
+        sensordata[k] = d.sensordata
+    from estimator.problem import quat_error_jacobian
+
+    per_stream: dict[str, list[np.ndarray]] = {}
+    for block in problem.blocks:
+        sig = block.sigma if block.sigma.ndim == 2 else np.tile(block.sigma, (T, 1))
+        pred = sensordata[:, block.rows]
+        if block.kind == "quat":
+            r = np.full((T, 3), np.nan)
+            for k in range(1, T - 1):
+                if np.all(np.isfinite(block.values[k])):
+                    r[k] = quat_error_jacobian(pred[k], block.values[k])[0]
+        else:
+            b = bias[:, block.bias] if block.bias is not None else 0.0
+            r = pred + b - block.values
+        per_stream.setdefault(block.stream, []).append(r / sig)
+    for name, parts in per_stream.items():
+        out[name] = np.hstack(parts)
+    return out
+
+
+def largest_residuals(est: Estimate, problem: Problem, n: int = 5) -> list[dict]:
+    """The n largest whitened residuals: factor type, which row, when, value."""
+    model = problem.model
+    entries: list[dict[str, Any]] = []
+    for name, r in est.residuals.items():
+        mag = np.abs(np.nan_to_num(r, nan=0.0))
+        for _ in range(n):
+            k, j = np.unravel_index(np.argmax(mag), mag.shape)
+            if mag[k, j] == 0:
+                break
+            what = f"dof {j}"
+            if name == "physics":
+                joint = mujoco.mj_id2name(model, _OBJ.mjOBJ_JOINT, int(model.dof_jntid[j]))
+                what = f"dof {j} (joint {joint!r})"
+            entries.append(
+                {
+                    "factor": name,
+                    "row": what if name == "physics" else f"row {j}",
+                    "time_s": float((est.t_ns[k] - est.t_ns[0]) / 1e9),
+                    "whitened": float(r[k, j]),
+                }
+            )
+            mag[max(0, k - 10) : k + 10, j] = 0  # the next one elsewhere
+    entries.sort(key=lambda e: -abs(e["whitened"]))
+    return entries[:n]
