@@ -278,7 +278,14 @@ def solve_window(
             graph, diag = lin.linearize(qpos, bias)
             scale = diag + 1e-12 * max(float(diag.max()), 1.0)  # Marquardt: λ diag(JᵀJ)
             while True:
-                step = _damped_step(graph, scale, lam)
+                try:
+                    step = _damped_step(graph, scale, lam)
+                except RuntimeError:  # too ill-conditioned at this λ: a rejected step
+                    lam *= 10.0
+                    if lam > 1e10:
+                        cost_new = cost
+                        break
+                    continue
                 dx = np.array([step.at(k) for k in range(p.T)])
                 q_new = retract(p.model, qpos, dx[:, : p.model.nv])
                 b_new = bias + dx[:, p.model.nv :]
