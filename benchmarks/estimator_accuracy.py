@@ -122,9 +122,8 @@ def main() -> None:
     for name, r in results.items():
         for i, metric in enumerate(r["raw"]):
             ratio = f"{r['wall_over_duration']:.1f}×" if i == 0 else ""
-            print(
-                f"{name:16s} {metric:14s} {r['raw'][metric]:9.3f} {r['estimate'][metric]:9.3f}   {ratio}"
-            )
+            raw, est = r["raw"][metric], r["estimate"][metric]
+            print(f"{name:16s} {metric:14s} {raw:9.3f} {est:9.3f}   {ratio}")
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "estimator_accuracy.json").write_text(json.dumps(results, indent=2) + "\n")
     print(f"wrote {args.out / 'estimator_accuracy.json'}")
