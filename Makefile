@@ -16,7 +16,7 @@ $(STAMP): requirements.lock pyproject.toml
 setup: $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/physfuse reproduce fig2 --out out/fig2
+	$(BIN)/physfuse estimate recordings/humanoid_push.mcap --config configs/humanoid_push.toml --out out/humanoid_push
 
 test: lint typecheck pytest
 

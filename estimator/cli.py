@@ -14,6 +14,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "reproduce": ("physics.reproduce.cli", "reproduce the paper's figures (benchmarks)"),
     "inspect": ("estimator.inspect_cmd", "topics, rates, gaps and bad samples of a robot log"),
     "simulate": ("estimator.simulate_cmd", "simulate a robot log with ground truth (MCAP)"),
+    "estimate": ("estimator.estimate_cmd", "smooth a robot log into motion and contact forces"),
 }
 
 

@@ -104,6 +104,7 @@ def estimate(
         _, cost_by_type = lin.cost(qpos, bias)
     finally:
         lin.close()
+    warnings.extend(consistency_warnings(est))
     summary = Summary(
         duration_s=(t_ns[-1] - t_ns[0]) / 1e9,
         knots=T,
@@ -300,6 +301,7 @@ def residuals_by_type(
     T = problem.T
     out: dict[str, np.ndarray] = {"physics": (qfrc - problem.qfrc_known) / problem.physics_sigma}
     out["physics"][~np.isfinite(problem.physics_sigma)] = np.nan
+    out["physics"][[0, T - 1]] = np.nan  # no acceleration at the end knots: no factor there
     v = velocities(problem.model, qpos, problem.h)
     a = accelerations(v, problem.h)
     d = mujoco.MjData(problem.model)
@@ -325,6 +327,38 @@ def residuals_by_type(
         per_stream.setdefault(block.stream, []).append(r / sig)
     for name, parts in per_stream.items():
         out[name] = np.hstack(parts)
+    return out
+
+
+UNEXPLAINED_MEDIAN_SIGMA = 3.0  # median |whitened residual| of a factor type; Gaussian: 0.67
+
+
+def consistency_warnings(est: Estimate) -> list[str]:
+    """Warnings when the model and the measurements do not fit each other.
+
+    A residual row (of a factor type) whose median |whitened value| over time exceeds 3σ
+    (0.67σ when the model and the noise settings are right; a median ignores occasional
+    outliers) means a wrong model, an unmodeled contact or force, or a faulty sensor or noise
+    setting. Names the factor, the row and the time of its largest residual.
+    """
+    out = []
+    for name, r in est.residuals.items():
+        magnitude = np.abs(r)
+        rows = np.flatnonzero(np.isfinite(magnitude).any(axis=0))
+        if not rows.size:
+            continue
+        medians = np.nanmedian(magnitude[:, rows], axis=0)  # per residual row, over time
+        j = int(rows[np.argmax(medians)])
+        median = float(medians.max())
+        if median <= UNEXPLAINED_MEDIAN_SIGMA:
+            continue
+        k = int(np.nanargmax(magnitude[:, j]))
+        t = (est.t_ns[k] - est.t_ns[0]) / 1e9
+        out.append(
+            f"the model does not explain the {name} measurements: median residual "
+            f"{median:.1f}σ on row {j} (largest {r[k, j]:+.0f}σ at {t:.2f} s) — wrong model, "
+            "unmodeled contact or force, or a faulty sensor or noise setting?"
+        )
     return out
 
 

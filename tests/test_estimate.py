@@ -1,0 +1,207 @@
+"""The smoother: factor Jacobians on the manifold, and `physfuse estimate` end to end."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+from mcap_ros2.reader import read_ros2_messages
+
+from estimator.cli import main
+from estimator.config import load_config
+from estimator.logs import read_log
+from estimator.problem import Settings, build_problem, knot_grid, retract
+from estimator.run import initial_trajectory
+from estimator.smoother import Linearizer
+from estimator.truth import at_times, read_ground_truth
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _window(name: str, first: int, knots: int) -> tuple:
+    """(problem, qpos, bias) of a short window of a sample recording, away from its start."""
+    config = load_config(ROOT / "configs" / f"{name}.toml", extra_sections=("estimator",))
+    log = read_log(ROOT / "recordings" / f"{name}.mcap", config)
+    settings = Settings(huber_k=1e12)  # no robust reweighting: J is the residual's derivative
+    h = float(config.load_model().opt.timestep)
+    t_ns = knot_grid(log.measurements, h)[first : first + knots]
+    problem = build_problem(config, log.measurements, settings, t_ns)
+    qpos = initial_trajectory(problem.model, log.measurements, t_ns)
+    bias = np.random.default_rng(0).normal(0.0, 0.01, (problem.T, problem.nb))
+    return problem, qpos, bias
+
+
+@pytest.mark.parametrize(
+    ("name", "first"),
+    [("humanoid_push", 100), ("arm_box", 1200), ("quadruped_trot", 200)],
+)
+def test_factor_jacobians_match_numerical_differentiation_on_the_manifold(name, first):
+    """Every row of knot k (physics, prior, each sensor: vectors, quaternions, IMU with bias,
+    force/torque) against central differences of q ⊕ x and b + δ."""
+    problem, qpos, bias = _window(name, first, 12)
+    lin = Linearizer(problem)
+    try:
+        k = 6
+        knot = next(kn for kn in lin.knot_terms(qpos, True) if kn.k == k)
+        r0, J, _ = lin.rows(knot, bias[k], with_jacobian=True)
+        assert J is not None
+        nv, nz = problem.model.nv, problem.nz
+        numeric = np.zeros_like(J)
+        eps = 1e-7
+        for i, key in enumerate((k - 1, k, k + 1)):
+            for c in range(nz):
+                rows = []
+                for sign in (1.0, -1.0):
+                    dx = np.zeros((problem.T, nv))
+                    db = np.zeros((problem.T, problem.nb))
+                    if c < nv:
+                        dx[key, c] = sign * eps
+                    else:
+                        db[key, c - nv] = sign * eps
+                    q2 = retract(problem.model, qpos, dx)
+                    kn = next(t for t in lin.knot_terms(q2, False) if t.k == k)
+                    rows.append(lin.rows(kn, (bias + db)[k], with_jacobian=False)[0])
+                numeric[:, i * nz + c] = (rows[0] - rows[1]) / (2 * eps)
+    finally:
+        lin.close()
+    # mjd_inverseFD differentiates forward in its own finite steps: compare each row to its
+    # own scale; sensors and the prior are analytic up to the sensors' finite differences
+    scale = np.maximum(np.max(np.abs(numeric), axis=1, keepdims=True), 1.0)
+    error = np.abs(J - numeric) / scale
+    assert error.max() < 2e-3, f"worst row {np.unravel_index(error.argmax(), error.shape)}"
+    assert len(r0) > 2 * nv  # sensor rows beyond physics (≤ nv) and prior (nv) were compared
+
+
+def test_difference_jacobians_of_rotations():
+    """∂(q2 ⊖ q1)/∂x on a free joint's rotation, against differences of mj_differentiatePos."""
+    from estimator.problem import _RotationDofs, difference_jacobians
+
+    model = load_config(ROOT / "configs" / "humanoid_push.toml").load_model()
+    rng = np.random.default_rng(3)
+    q1 = model.qpos0.copy()
+    q2 = model.qpos0.copy()
+    mujoco.mj_integratePos(model, q1, rng.normal(0, 0.5, model.nv), 1.0)
+    mujoco.mj_integratePos(model, q2, rng.normal(0, 0.5, model.nv), 1.0)
+    d1, d2 = difference_jacobians(model, _RotationDofs.of(model), q1, q2)
+
+    def diff(a, b):
+        v = np.zeros(model.nv)
+        mujoco.mj_differentiatePos(model, v, 1.0, a, b)
+        return v
+
+    eps = 1e-7
+    for which, analytic in ((0, d1), (1, d2)):
+        numeric = np.zeros((model.nv, model.nv))
+        for c in range(model.nv):
+            dx = np.zeros(model.nv)
+            dx[c] = eps
+            plus, minus = [q.copy() for q in (q1, q2)], [q.copy() for q in (q1, q2)]
+            mujoco.mj_integratePos(model, plus[which], dx, 1.0)
+            mujoco.mj_integratePos(model, minus[which], -dx, 1.0)
+            numeric[:, c] = (diff(*plus) - diff(*minus)) / (2 * eps)
+        np.testing.assert_allclose(analytic, numeric, atol=1e-7)
+
+
+@pytest.fixture(scope="module")
+def estimated(tmp_path_factory):
+    """`physfuse estimate` on a fresh 1.5 s humanoid_push simulation: (out dir, log path)."""
+    folder = tmp_path_factory.mktemp("estimate")
+    log = folder / "push.mcap"
+    config = folder / "push.toml"
+    assert (
+        main(
+            [
+                "simulate",
+                "humanoid_push",
+                "--seed",
+                "3",
+                "--duration",
+                "1.5",
+                "--out",
+                str(log),
+                "--config-out",
+                str(config),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    out = folder / "out"
+    assert main(["estimate", str(log), "--config", str(config), "--out", str(out), "--quiet"]) == 0
+    return out, log, config
+
+
+def test_estimate_writes_the_shared_topic_layout_and_beats_the_measurements(estimated, capsys):
+    out, log, config = estimated
+    model = load_config(config).load_model()
+    summary = json.loads((out / "summary.json").read_text())
+    knots = summary["knots"]
+    assert all(summary["converged"])
+    accuracy = summary["accuracy_vs_ground_truth"]
+    for metric in ("joint_deg", "torso_pos_mm", "torso_rot_deg"):
+        assert accuracy["estimate"][metric] < accuracy["raw"][metric], metric
+    # estimate.mcap: the /estimate layout, one message per knot and topic
+    counts: dict[str, int] = {}
+    odometry = {}
+    for msg in read_ros2_messages(str(out / "estimate.mcap")):
+        counts[msg.channel.topic] = counts.get(msg.channel.topic, 0) + 1
+        if msg.channel.topic == "/estimate/odometry/torso":
+            m = msg.ros_msg
+            t = m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+            p = m.pose.pose.position
+            odometry[t] = (p.x, p.y, p.z, m.pose.covariance[0])
+    expected = {"/estimate/odometry/torso", "/estimate/joint_states", "/estimate/contacts"}
+    assert expected <= set(counts)
+    assert any(t.startswith("/estimate/contact_wrench/") for t in counts)
+    assert counts["/estimate/joint_states"] == knots
+    # the odometry is the estimate: within millimetres of the true torso, with a covariance
+    times = np.array(sorted(odometry))
+    truth = at_times(*read_ground_truth(log, model), times)
+    position = np.array([odometry[t][:3] for t in times])
+    assert np.sqrt(np.mean(np.sum((position - truth[:, :3]) ** 2, axis=1))) < 2e-3
+    assert all(odometry[t][3] > 0 for t in times[2:-2])
+    # the Rerun recording has the moving model and the contact arrows
+    import rerun as rr
+
+    chunks = rr.chunk.RrdReader(out / "estimate.rrd").stream().collect().stream().to_chunks()
+    paths = {c.entity_path for c in chunks}
+    assert "/world/model/torso" in paths and "/world/contacts" in paths
+
+
+def test_estimate_reports_a_model_that_does_not_explain_the_motion(estimated, tmp_path, capsys):
+    """A floor 5 cm too high: the estimate is still written, with a warning naming residuals."""
+    _, log, config = estimated
+    spec = mujoco.MjSpec.from_file(str(ROOT / "physics" / "models" / "humanoid.xml"))
+    floor = spec.geom("floor")
+    floor.pos = [floor.pos[0], floor.pos[1], floor.pos[2] + 0.05]
+    wrong_model = tmp_path / "high_floor.xml"
+    wrong_model.write_text(spec.to_xml())
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text(config.read_text().replace('model = "humanoid"', f'model = "{wrong_model}"'))
+    out = tmp_path / "out"
+    assert main(["estimate", str(log), "--config", str(wrong), "--out", str(out), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "the model does not explain the mocap_torso measurements" in err
+    assert (out / "estimate.mcap").exists()
+    assert json.loads((out / "summary.json").read_text())["warnings"]
+    # the right model raises no such warning
+    summary = json.loads((estimated[0] / "summary.json").read_text())
+    assert not any("does not explain" in w for w in summary["warnings"])
+
+
+def test_bad_settings_and_missing_logs_are_one_line_errors(estimated, tmp_path, capsys):
+    _, log, config = estimated
+    bad = tmp_path / "bad.toml"
+    bad.write_text(config.read_text() + "\n[estimator]\nwindow_s = -1\n")
+    assert main(["estimate", str(log), "--config", str(bad), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "estimator.window_s = -1" in err
+    typo = tmp_path / "typo.toml"
+    typo.write_text(config.read_text() + "\n[estimator]\nwindow = 2\n")
+    assert main(["estimate", str(log), "--config", str(typo), "--out", str(tmp_path)]) == 2
+    assert "estimator.window is not a setting" in capsys.readouterr().err
+    assert main(["estimate", str(tmp_path / "none.mcap"), "--config", str(config)]) == 2
+    assert "none.mcap" in capsys.readouterr().err
