@@ -52,6 +52,7 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
     "window_s": (4.0, "length of one smoothing window, s"),
     "overlap_s": (0.5, "overlap of consecutive windows, s"),
     "max_iterations": (30, "Levenberg–Marquardt iterations per window"),
+    "tolerance": (1e-3, "stop when an iteration lowers the cost by less than this fraction"),
     "bias_prior_accel": (0.5, "σ of the first accelerometer bias, m/s²"),
     "bias_prior_gyro": (0.05, "σ of the first gyro bias, rad/s"),
     "fd_eps": (1e-6, "finite-difference step of mjd_inverseFD"),
@@ -69,6 +70,7 @@ class Settings:
     window_s: float = 4.0
     overlap_s: float = 0.5
     max_iterations: int = 30
+    tolerance: float = 1e-3
     bias_prior_accel: float = 0.5
     bias_prior_gyro: float = 0.05
     fd_eps: float = 1e-6
@@ -548,14 +550,41 @@ class KnotModel:
         return DfDq.T, DfDv.T, DfDa.T, DsDq.T, DsDv.T, DsDa.T
 
 
-def quat_error_jacobian(pred: np.ndarray, meas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """e = Log(meas⁻¹ ⊗ pred) (3,) and ∂e/∂pred (3, 4) for a linear change of pred.
+def quat_errors(pred: np.ndarray, meas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """e = Log(meas⁻¹ ⊗ pred) (K, 3) and ∂e/∂pred (K, 3, 4) for linear changes of pred (K, 4).
 
-    pred ⊗ Exp(ξ) ≈ pred + dq gives ξ = 2 Im(pred* ⊗ dq); then de = J_r⁻¹(e) ξ.
+    pred ⊗ Exp(ξ) ≈ pred + dq gives ξ = 2 Im(pred* ⊗ dq); then de = J_r⁻¹(e) ξ, with
+    J_r⁻¹(φ) = I + ½[φ]× + (1/θ² − (1 + cos θ)/(2θ sin θ)) [φ]×², θ = ‖φ‖.
     """
-    e = np.zeros(3)
-    mujoco.mju_subQuat(e, pred, meas)
-    w, x, y, z = pred
-    # Im(q* ⊗ p) for p = (pw, px, py, pz): rows of a 3×4 matrix
-    G = np.array([[-x, w, z, -y], [-y, -z, w, x], [-z, y, -x, w]])
-    return e, gtsam.Rot3.LogmapDerivative(e) @ (2.0 * G)
+    w1, v1 = meas[:, 0], -meas[:, 1:]  # meas* (unit quaternions)
+    w2, v2 = pred[:, 0], pred[:, 1:]
+    w = w1 * w2 - np.sum(v1 * v2, axis=1)
+    v = w1[:, None] * v2 + w2[:, None] * v1 + np.cross(v1, v2)
+    sign = np.where(w < 0, -1.0, 1.0)  # the short way round
+    w, v = w * sign, v * sign[:, None]
+    s = np.linalg.norm(v, axis=1)
+    theta = 2.0 * np.arctan2(s, w)
+    scale = np.where(s > 1e-12, theta / np.where(s > 1e-12, s, 1.0), 2.0 / np.maximum(w, 1e-300))
+    e = v * scale[:, None]
+    x, y, z = pred[:, 1], pred[:, 2], pred[:, 3]
+    G = np.stack(
+        [  # Im(q* ⊗ p) as a 3×4 matrix of p = (pw, px, py, pz)
+            np.stack([-x, w2, z, -y], axis=1),
+            np.stack([-y, -z, w2, x], axis=1),
+            np.stack([-z, y, -x, w2], axis=1),
+        ],
+        axis=1,
+    )
+    return e, np.einsum("kij,kjl->kil", _jr_inverse(e), 2.0 * G)
+
+
+def _jr_inverse(phi: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) inverse right Jacobian of SO(3) at φ (K, 3)."""
+    theta = np.linalg.norm(phi, axis=1)
+    hat = np.zeros((len(phi), 3, 3))
+    hat[:, 0, 1], hat[:, 0, 2], hat[:, 1, 2] = -phi[:, 2], phi[:, 1], -phi[:, 0]
+    hat -= hat.transpose(0, 2, 1)
+    small = theta < 1e-6
+    t = np.where(small, 1.0, theta)
+    c = np.where(small, 1.0 / 12.0, 1.0 / t**2 - (1.0 + np.cos(t)) / (2.0 * t * np.sin(t)))
+    return np.eye(3) + 0.5 * hat + c[:, None, None] * (hat @ hat)

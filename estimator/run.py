@@ -44,6 +44,10 @@ class Summary:
     largest_residuals: list[dict]
     wall_time_s: float
     warnings: list[str] = field(default_factory=list)
+    linearizations: int = 0  # MuJoCo passes with Jacobians over a window's knots
+    evaluations: int = 0  # passes without
+    knots_linearized: int = 0  # Σ knots over those passes
+    knots_evaluated: int = 0
 
 
 def estimate(
@@ -69,6 +73,9 @@ def estimate(
     std = np.full((T, model.nv), np.nan)
     iterations, converged = [], []
     warnings: list[str] = []
+    passes = dict.fromkeys(
+        ("linearizations", "evaluations", "knots_linearized", "knots_evaluated"), 0
+    )
     kept_until = 0
     for i, s in enumerate(starts):
         e = min(T, s + W)
@@ -91,6 +98,10 @@ def estimate(
         kept_until = keep_to
         warnings.extend(f"window {i + 1}: {w}" for w in result.warnings)
         iterations.append(result.iterations)
+        passes["linearizations"] += result.linearizations
+        passes["evaluations"] += result.evaluations
+        passes["knots_linearized"] += result.linearizations * (e - s - 2)
+        passes["knots_evaluated"] += result.evaluations * (e - s - 2)
         converged.append(result.converged)
         if progress:
             progress(i + 1, len(starts))
@@ -116,6 +127,7 @@ def estimate(
         largest_residuals=largest_residuals(est, full),
         wall_time_s=time.perf_counter() - start,
         warnings=warnings,
+        **passes,
     )
     return est, summary
 
@@ -289,44 +301,26 @@ def _collect(
         constraints=tuple(constraints),
         model_name=config.model,
         imu_bias=imu_bias,
-        residuals=residuals_by_type(problem, qpos, bias, qfrc),
+        residuals=residuals_by_type(problem, qpos, bias),
     )
     return est
 
 
 def residuals_by_type(
-    problem: Problem, qpos: np.ndarray, bias: np.ndarray, qfrc: np.ndarray
+    problem: Problem, qpos: np.ndarray, bias: np.ndarray
 ) -> dict[str, np.ndarray]:
-    """Whitened residuals per knot: "physics" (T, nv) and one (T, rows) array per stream."""
-    T = problem.T
-    out: dict[str, np.ndarray] = {"physics": (qfrc - problem.qfrc_known) / problem.physics_sigma}
-    out["physics"][~np.isfinite(problem.physics_sigma)] = np.nan
-    out["physics"][[0, T - 1]] = np.nan  # no acceleration at the end knots: no factor there
-    v = velocities(problem.model, qpos, problem.h)
-    a = accelerations(v, problem.h)
-    d = mujoco.MjData(problem.model)
-    sensordata = np.full((T, problem.model.nsensordata), np.nan)
-    for k in range(1, T - 1):
-        d.qpos[:], d.qvel[:], d.qacc[:] = qpos[k], v[k], a[k]
-        mujoco.mj_inverse(problem.model, d)
-        sensordata[k] = d.sensordata
-    from estimator.problem import quat_error_jacobian
-
-    per_stream: dict[str, list[np.ndarray]] = {}
-    for block in problem.blocks:
-        sig = block.sigma if block.sigma.ndim == 2 else np.tile(block.sigma, (T, 1))
-        pred = sensordata[:, block.rows]
-        if block.kind == "quat":
-            r = np.full((T, 3), np.nan)
-            for k in range(1, T - 1):
-                if np.all(np.isfinite(block.values[k])):
-                    r[k] = quat_error_jacobian(pred[k], block.values[k])[0]
-        else:
-            b = bias[:, block.bias] if block.bias is not None else 0.0
-            r = pred + b - block.values
-        per_stream.setdefault(block.stream, []).append(r / sig)
-    for name, parts in per_stream.items():
-        out[name] = np.hstack(parts)
+    """Whitened residuals per knot, unweighted: "physics" (T, nv), "prior" (T, nv) and one
+    (T, rows) array per stream; NaN where a knot has no such factor (and at both end knots)."""
+    lin = Linearizer(problem)
+    try:
+        blocks = lin.blocks(lin.terms(qpos, False), bias, robust=False)
+    finally:
+        lin.close()
+    out = {}
+    for block in blocks:
+        r = np.full((problem.T, block.r.shape[1]), np.nan)
+        r[1:-1] = np.where(block.valid, block.r, np.nan)
+        out[block.name] = r
     return out
 
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import gtsam
 import numpy as np
@@ -22,7 +21,7 @@ from estimator.problem import (
     Problem,
     accelerations,
     difference_jacobians,
-    quat_error_jacobian,
+    quat_errors,
     retract,
     velocities,
 )
@@ -41,123 +40,69 @@ class WindowResult:
     cost_final: float
     cost_by_type: dict[str, float]
     warnings: list[str]
+    linearizations: int = 0  # MuJoCo passes with Jacobians (mjd_inverseFD at every knot)
+    evaluations: int = 0  # passes without (mj_inverse at every knot)
 
 
-class Knot(NamedTuple):
-    """One interior knot at the current trajectory.
+@dataclass
+class Terms:
+    """Inverse dynamics and sensors at the interior knots k = 1 … T−2, stacked (row i ↔ knot
+    i + 1). a, u: (K, nv); s: (K, ns). With Jacobians, derivatives with respect to
+    (x_{k−1}, x_k, x_{k+1}): Ju (K, nv, 3 nv), Js (K, ns, 3 nv), da (K, nv, 3 nv)."""
 
-    v, a, u: (nv,) velocity, acceleration, inverse-dynamics force; s: (ns,) sensordata.
-    Ju (nv, 3 nv), Js (ns, 3 nv), da_dx (nv, 3 nv): derivatives with respect to
-    (x_{k−1}, x_k, x_{k+1}); None when only the residual is needed.
-    """
-
-    k: int
-    v: np.ndarray
     a: np.ndarray
     u: np.ndarray
     s: np.ndarray
     Ju: np.ndarray | None = None
     Js: np.ndarray | None = None
-    da_dx: np.ndarray | None = None
+    da: np.ndarray | None = None
+
+
+@dataclass
+class Block:
+    """One factor type's whitened rows at every interior knot, robust weights applied.
+
+    r: (K, m); J: (K, m, 3 nz) or None; cost: (K,) robust cost of the rows at each knot;
+    valid: (K, m) rows that carry a factor (a measurement, a known force); the others are 0.
+    """
+
+    name: str
+    r: np.ndarray
+    J: np.ndarray | None
+    cost: np.ndarray
+    valid: np.ndarray
 
 
 class Linearizer:
-    """Residuals and their Jacobians over all knots of a problem."""
+    """Residuals and their Jacobians over all knots of a problem, vectorized across knots."""
 
     def __init__(self, problem: Problem) -> None:
         self.problem = problem
         self.knots = [KnotModel(problem, problem.settings.path) for _ in range(THREADS)]
         self.huber = gtsam.noiseModel.mEstimator.Huber.Create(problem.settings.huber_k)
         self.pool = ThreadPoolExecutor(THREADS)
+        self.passes = {True: 0, False: 0}  # MuJoCo passes over all knots, with/without Jacobians
 
-    # -- per-knot rows ------------------------------------------------------------------------
+    # -- MuJoCo at every knot (threads; MuJoCo releases the GIL) ------------------------------
 
-    def rows(
-        self, knot: Knot, bias: np.ndarray, with_jacobian: bool
-    ) -> tuple[np.ndarray, np.ndarray | None, dict[str, float]]:
-        """Whitened residual rows of knot k and their Jacobian (rows, 3·nz) on z_{k−1..k+1}.
-
-        Returns (r, J or None, cost per factor type). Robust (Huber) weights are folded into
-        the sensor rows: r ← √w r, J ← √w J, with w from GTSAM's mEstimator at ‖r‖.
-        """
+    def terms(self, qpos: np.ndarray, with_jacobians: bool) -> Terms:
         p = self.problem
-        nv, nb, nz = p.model.nv, p.nb, p.nz
-        k, a, u, s = knot.k, knot.a, knot.u, knot.s
-        jac = with_jacobian
-        empty = np.zeros((0, 0))
-        Ju, Js, da_dx = (knot.Ju, knot.Js, knot.da_dx) if jac else (empty, empty, empty)
-        assert Ju is not None and Js is not None and da_dx is not None
-        r_parts: list[np.ndarray] = []
-        j_parts: list[np.ndarray] = []
-        cost: dict[str, float] = {}
-
-        def add(name: str, r: np.ndarray, J: np.ndarray | None, robust: bool) -> None:
-            norm = float(np.linalg.norm(r))
-            if robust and norm > 0:
-                w = self.huber.weight(norm)
-                cost[name] = cost.get(name, 0.0) + float(self.huber.loss(norm))
-                r, J = np.sqrt(w) * r, (None if J is None else np.sqrt(w) * J)
-            else:
-                cost[name] = cost.get(name, 0.0) + 0.5 * norm**2
-            r_parts.append(r)
-            if J is not None:
-                j_parts.append(J)
-
-        # physics: W (u − u_known) on dofs with a known force
-        sigma = p.physics_sigma[k]
-        known = np.isfinite(sigma)
-        r = (u - p.qfrc_known[k])[known] / sigma[known]
-        add(
-            "physics",
-            r,
-            _expand(Ju[known] / sigma[known, None], nv, nz) if jac else None,
-            robust=False,
-        )
-        # smoothness prior: a_k / σ_a
-        sa = p.settings.accel_prior_std
-        add("prior", a / sa, _expand(da_dx / sa, nv, nz) if jac else None, robust=False)
-        # sensors
-        for block in p.blocks:
-            meas = block.values[k]
-            if not np.all(np.isfinite(meas)):
-                continue
-            sig = block.sigma[k] if block.sigma.ndim == 2 else block.sigma
-            pred = s[block.rows]
-            if block.kind == "quat":
-                e, de_dp = quat_error_jacobian(pred, meas)
-                r = e / sig
-                J = _expand(de_dp @ Js[block.rows] / sig[:, None], nv, nz) if jac else None
-            else:
-                b = bias[block.bias] if block.bias is not None else 0.0
-                r = (pred + b - meas) / sig
-                J = None
-                if jac:
-                    J = _expand(Js[block.rows] / sig[:, None], nv, nz)
-                    if block.bias is not None:
-                        cols = 2 * nz - nb + np.arange(block.bias.start, block.bias.stop)
-                        J[np.arange(len(r)), cols] += 1.0 / sig
-            add(block.stream, r, J, robust=True)
-        r_all = np.concatenate(r_parts) if r_parts else np.zeros(0)
-        J_all = np.vstack(j_parts) if (jac and j_parts) else None
-        return r_all, J_all, cost
-
-    # -- all knots ------------------------------------------------------------------------------
-
-    def knot_terms(self, qpos: np.ndarray, with_jacobians: bool) -> list[Knot]:
-        """Inverse dynamics, sensors and (optionally) their Jacobians at each interior knot."""
-        p = self.problem
-        nv, h = p.model.nv, p.h
+        self.passes[with_jacobians] += 1
+        nv, ns, h = p.model.nv, p.model.nsensordata, p.h
         v = velocities(p.model, qpos, h)
         a = accelerations(v, h)
+        K = p.T - 2
+        u, s = np.zeros((K, nv)), np.zeros((K, ns))
+        n_jac = K if with_jacobians else 0
+        Ju, Js, da = (np.zeros((n_jac, n, 3 * nv)) for n in (nv, ns, nv))
+        zero = np.zeros((nv, nv))
+        dq_dx = np.hstack([zero, np.eye(nv), zero])
 
-        def work(chunk: range, worker: KnotModel) -> list[Knot]:
-            out = []
-            zero = np.zeros((nv, nv))
-            dq_dx = np.hstack([zero, np.eye(nv), zero])
+        def work(chunk: range, worker: KnotModel) -> None:
             for k in chunk:
-                u, s = worker.evaluate(qpos[k], v[k], a[k])
+                i = k - 1
+                u[i], s[i] = worker.evaluate(qpos[k], v[k], a[k])
                 if not with_jacobians:
-                    out.append(Knot(k, v[k], a[k], u, s))
                     continue
                 DfDq, DfDv, DfDa, DsDq, DsDv, DsDa = worker.jacobians(qpos[k], v[k], a[k])
                 rot = worker.rotations
@@ -166,23 +111,92 @@ class Linearizer:
                 # v_k = (q_k ⊖ q_{k−1})/h,  a_k = (v_{k+1} − v_k)/h
                 dv_dx = np.hstack([d1_k, d2_k, zero]) / h
                 da_dx = np.hstack([-d1_k, d1_n - d2_k, d2_n]) / h**2
-                Ju = DfDq @ dq_dx + DfDv @ dv_dx + DfDa @ da_dx
-                Js = DsDq @ dq_dx + DsDv @ dv_dx + DsDa @ da_dx
-                out.append(Knot(k, v[k], a[k], u, s, Ju, Js, da_dx))
-            return out
+                Ju[i] = DfDq @ dq_dx + DfDv @ dv_dx + DfDa @ da_dx
+                Js[i] = DsDq @ dq_dx + DsDv @ dv_dx + DsDa @ da_dx
+                da[i] = da_dx
 
         interior = range(1, p.T - 1)
-        chunks = [interior[i::THREADS] for i in range(THREADS)]
-        parts = list(self.pool.map(work, chunks, self.knots))
-        return sorted((knot for part in parts for knot in part), key=lambda knot: knot.k)
+        list(self.pool.map(work, [interior[i::THREADS] for i in range(THREADS)], self.knots))
+        if with_jacobians:
+            return Terms(a[1:-1], u, s, Ju, Js, da)
+        return Terms(a[1:-1], u, s)
+
+    # -- whitened, robustly weighted rows of every factor type --------------------------------
+
+    def blocks(self, t: Terms, bias: np.ndarray, robust: bool = True) -> list[Block]:
+        """Physics, prior and sensor rows at every interior knot (one Block per factor type).
+
+        robust=False leaves the sensor rows unweighted (for reporting residuals)."""
+        p = self.problem
+        nv, nb, nz = p.model.nv, p.nb, p.nz
+        if t.Ju is not None and t.Js is not None and t.da is not None:
+            jac, Ju, Js_all, da = True, t.Ju, t.Js, t.da
+        else:
+            jac, Ju, Js_all, da = False, np.zeros(0), np.zeros(0), np.zeros(0)
+        K = p.T - 2
+        out: list[Block] = []
+
+        # physics: W (u − u_known); rows with no known force are 0
+        sigma = p.physics_sigma[1:-1]
+        known = np.isfinite(sigma)
+        w = np.where(known, 1.0 / np.where(known, sigma, 1.0), 0.0)
+        r = np.nan_to_num((t.u - p.qfrc_known[1:-1]) * w)
+        J = _expand(Ju * w[:, :, None], nv, nz) if jac else None
+        # robust too, so that impacts and unmodeled contacts do not bend the motion; the
+        # threshold scales with √(rows) (a knot's norm over n consistent rows is ≈ √n)
+        scale = np.sqrt(np.maximum(known.sum(axis=1), 1))
+        norm = np.linalg.norm(r, axis=1) / scale
+        cost = np.array([self.huber.loss(n) for n in norm]) * scale**2
+        if robust:
+            root = np.sqrt([self.huber.weight(n) for n in norm])
+            r = r * root[:, None]
+            if J is not None:
+                J *= root[:, None, None]
+        out.append(Block("physics", r, J, cost, known))
+        # smoothness prior: a_k / σ_a
+        sa = p.settings.accel_prior_std
+        r = t.a / sa
+        J = _expand(da / sa, nv, nz) if jac else None
+        out.append(Block("prior", r, J, 0.5 * np.sum(r**2, axis=1), np.ones(r.shape, bool)))
+        # sensors, robust
+        b_k = bias[1:-1]
+        for block in p.blocks:
+            meas = block.values[1:-1]
+            valid = np.all(np.isfinite(meas), axis=1)
+            sig = block.sigma[1:-1] if block.sigma.ndim == 2 else np.tile(block.sigma, (K, 1))
+            pred = t.s[:, block.rows]
+            Js = Js_all[:, block.rows] if jac else Js_all
+            if block.kind == "quat":
+                e, de_dp = quat_errors(pred, np.where(valid[:, None], meas, pred))
+                r = e / sig
+                J = (
+                    _expand(np.einsum("kij,kjc->kic", de_dp, Js) / sig[:, :, None], nv, nz)
+                    if jac
+                    else None
+                )
+            else:
+                b = b_k[:, block.bias] if block.bias is not None else np.zeros(1)
+                r = (pred + b - np.where(valid[:, None], meas, 0.0)) / sig
+                J = _expand(Js / sig[:, :, None], nv, nz) if jac else None
+                if J is not None and block.bias is not None:
+                    cols = 2 * nz - nb + np.arange(block.bias.start, block.bias.stop)
+                    J[:, np.arange(r.shape[1]), cols] += 1.0 / sig
+            r[~valid] = 0.0
+            if J is not None:
+                J[~valid] = 0.0
+            norm = np.linalg.norm(r, axis=1)
+            cost = np.array([self.huber.loss(n) for n in norm])
+            if robust:
+                root = np.sqrt([self.huber.weight(n) for n in norm])
+                r = r * root[:, None]
+                if J is not None:
+                    J *= root[:, None, None]
+            out.append(Block(block.stream, r, J, cost, np.repeat(valid[:, None], r.shape[1], 1)))
+        return _merge_by_name(out)
 
     def cost(self, qpos: np.ndarray, bias: np.ndarray) -> tuple[float, dict[str, float]]:
         """Total robust cost and its split by factor type."""
-        total: dict[str, float] = {}
-        for knot in self.knot_terms(qpos, False):
-            _, _, c = self.rows(knot, bias[knot.k], with_jacobian=False)
-            for key, value in c.items():
-                total[key] = total.get(key, 0.0) + value
+        total = {b.name: float(b.cost.sum()) for b in self.blocks(self.terms(qpos, False), bias)}
         total.update(self._bias_cost(bias))
         return sum(total.values()), total
 
@@ -191,20 +205,30 @@ class Linearizer:
     ) -> tuple[gtsam.GaussianFactorGraph, np.ndarray]:
         """The whitened linear system at (qpos, bias) and diag(JᵀJ) per key, (T, nz)."""
         p = self.problem
-        graph = gtsam.GaussianFactorGraph()
         nz = p.nz
-        diag = np.zeros((p.T, nz))
-        for knot in self.knot_terms(qpos, True):
-            k = knot.k
-            r, J, _ = self.rows(knot, bias[k], with_jacobian=True)
-            assert J is not None
-            unit = gtsam.noiseModel.Unit.Create(len(r))
+        blocks = self.blocks(self.terms(qpos, True), bias)
+        R = np.concatenate([b.r for b in blocks], axis=1)  # (K, m)
+        J = np.concatenate([b.J for b in blocks if b.J is not None], axis=1)
+        graph = gtsam.GaussianFactorGraph()
+        unit = gtsam.noiseModel.Unit.Create(R.shape[1])
+        for i in range(p.T - 2):
+            k = i + 1
             graph.add(
                 gtsam.JacobianFactor(
-                    k - 1, J[:, :nz], k, J[:, nz : 2 * nz], k + 1, J[:, 2 * nz :], -r, unit
+                    k - 1,
+                    J[i, :, :nz],
+                    k,
+                    J[i, :, nz : 2 * nz],
+                    k + 1,
+                    J[i, :, 2 * nz :],
+                    -R[i],
+                    unit,
                 )
             )
-            diag[k - 1 : k + 2] += np.sum(J**2, axis=0).reshape(3, nz)
+        diag = np.zeros((p.T, nz))
+        column_norms = np.sum(J**2, axis=1).reshape(p.T - 2, 3, nz)
+        for j in range(3):
+            diag[j : p.T - 2 + j] += column_norms[:, j]
         self._add_bias_factors(graph, bias, diag)
         return graph, diag
 
@@ -255,10 +279,26 @@ class Linearizer:
 
 
 def _expand(J: np.ndarray, nv: int, nz: int) -> np.ndarray:
-    """Jacobian over (x_{k−1}, x_k, x_{k+1}) (rows, 3 nv) → over (z_{k−1}, z_k, z_{k+1})."""
-    out = np.zeros((J.shape[0], 3 * nz))
+    """Jacobians over (x_{k−1}, x_k, x_{k+1}) (K, m, 3 nv) → over (z_{k−1}, z_k, z_{k+1})."""
+    out = np.zeros((*J.shape[:2], 3 * nz))
     for i in range(3):
-        out[:, i * nz : i * nz + nv] = J[:, i * nv : (i + 1) * nv]
+        out[:, :, i * nz : i * nz + nv] = J[:, :, i * nv : (i + 1) * nv]
+    return out
+
+
+def _merge_by_name(blocks: list[Block]) -> list[Block]:
+    """One Block per factor type (a stream's position and rotation blocks together)."""
+    merged: dict[str, list[Block]] = {}
+    for b in blocks:
+        merged.setdefault(b.name, []).append(b)
+    out = []
+    for name, parts in merged.items():
+        r = np.concatenate([b.r for b in parts], axis=1)
+        jacobians = [b.J for b in parts if b.J is not None]
+        J = np.concatenate(jacobians, axis=1) if jacobians else None
+        valid = np.concatenate([b.valid for b in parts], axis=1)
+        cost = np.sum([b.cost for b in parts], axis=0)
+        out.append(Block(name, r, J, cost, valid))
     return out
 
 
@@ -299,7 +339,7 @@ def solve_window(
             decrease = (cost - cost_new) / max(cost, 1e-300)
             qpos, bias, cost = q_new, b_new, cost_new
             lam = max(lam / 10.0, 1e-9)
-            if decrease < 1e-6:
+            if decrease < p.settings.tolerance:
                 converged = True
                 break
         _, by_type = lin.cost(qpos, bias)
@@ -307,7 +347,19 @@ def solve_window(
         warnings: list[str] = []
         if covariance:
             std = _marginal_std(lin, qpos, bias, warnings)
-        return WindowResult(qpos, bias, std, it, converged, cost0, cost, by_type, warnings)
+        return WindowResult(
+            qpos,
+            bias,
+            std,
+            it,
+            converged,
+            cost0,
+            cost,
+            by_type,
+            warnings,
+            lin.passes[True],
+            lin.passes[False],
+        )
     finally:
         lin.close()
 

@@ -43,11 +43,16 @@ def test_factor_jacobians_match_numerical_differentiation_on_the_manifold(name, 
     force/torque) against central differences of q ⊕ x and b + δ."""
     problem, qpos, bias = _window(name, first, 12)
     lin = Linearizer(problem)
+    k = 6
+
+    def rows_at_k(q: np.ndarray, b: np.ndarray, jacobian: bool) -> tuple[np.ndarray, ...]:
+        blocks = lin.blocks(lin.terms(q, jacobian), b)
+        r = np.concatenate([block.r[k - 1] for block in blocks])
+        J = np.concatenate([block.J[k - 1] for block in blocks]) if jacobian else None
+        return r, J
+
     try:
-        k = 6
-        knot = next(kn for kn in lin.knot_terms(qpos, True) if kn.k == k)
-        r0, J, _ = lin.rows(knot, bias[k], with_jacobian=True)
-        assert J is not None
+        r0, J = rows_at_k(qpos, bias, True)
         nv, nz = problem.model.nv, problem.nz
         numeric = np.zeros_like(J)
         eps = 1e-7
@@ -61,9 +66,7 @@ def test_factor_jacobians_match_numerical_differentiation_on_the_manifold(name, 
                         dx[key, c] = sign * eps
                     else:
                         db[key, c - nv] = sign * eps
-                    q2 = retract(problem.model, qpos, dx)
-                    kn = next(t for t in lin.knot_terms(q2, False) if t.k == k)
-                    rows.append(lin.rows(kn, (bias + db)[k], with_jacobian=False)[0])
+                    rows.append(rows_at_k(retract(problem.model, qpos, dx), bias + db, False)[0])
                 numeric[:, i * nz + c] = (rows[0] - rows[1]) / (2 * eps)
     finally:
         lin.close()
@@ -72,7 +75,7 @@ def test_factor_jacobians_match_numerical_differentiation_on_the_manifold(name, 
     scale = np.maximum(np.max(np.abs(numeric), axis=1, keepdims=True), 1.0)
     error = np.abs(J - numeric) / scale
     assert error.max() < 2e-3, f"worst row {np.unravel_index(error.argmax(), error.shape)}"
-    assert len(r0) > 2 * nv  # sensor rows beyond physics (≤ nv) and prior (nv) were compared
+    assert len(r0) > 2 * nv + 6  # sensor rows beyond physics (nv) and prior (nv) compared
 
 
 def test_difference_jacobians_of_rotations():
@@ -205,3 +208,30 @@ def test_bad_settings_and_missing_logs_are_one_line_errors(estimated, tmp_path, 
     assert "estimator.window is not a setting" in capsys.readouterr().err
     assert main(["estimate", str(tmp_path / "none.mcap"), "--config", str(config)]) == 2
     assert "none.mcap" in capsys.readouterr().err
+
+
+def test_initialization_survives_a_dropped_first_frame():
+    """Without the first mocap frames, the first knots hold the first seen pose (no NaN) and
+    the measured knots are the measurements."""
+    from dataclasses import replace
+
+    config = load_config(ROOT / "configs" / "humanoid_push.toml", extra_sections=("estimator",))
+    measurements = dict(read_log(ROOT / "recordings" / "humanoid_push.mcap", config).measurements)
+    torso = measurements["mocap_torso"]
+    dropped = 6
+    measurements["mocap_torso"] = replace(
+        torso,
+        t_ns=torso.t_ns[dropped:],
+        log_time_ns=torso.log_time_ns[dropped:],
+        values=torso.values[dropped:],
+    )
+    model = config.load_model()
+    t_ns = knot_grid(measurements, float(model.opt.timestep))
+    qpos = initial_trajectory(model, measurements, t_ns)
+    assert np.all(np.isfinite(qpos))
+    first = int(np.searchsorted(t_ns, measurements["mocap_torso"].t_ns[0]))
+    assert first > 0
+    np.testing.assert_allclose(
+        qpos[:first, :3], np.tile(qpos[first + 1, :3], (first, 1)), atol=0.02
+    )
+    np.testing.assert_allclose(np.linalg.norm(qpos[:, 3:7], axis=1), 1.0, atol=1e-12)

@@ -1,0 +1,125 @@
+"""Speed and memory of the estimator: wall time over log duration, overhead over the bare MuJoCo
+linearization it needs, and peak memory.
+
+    python benchmarks/estimator_speed.py [--minutes M] [--out DIR]
+
+Simulates an M-minute humanoid_push log (default 10), estimates it, and measures in the same
+run the bare cost of the MuJoCo work the solve needed: the same number of knot passes of
+mjd_inverseFD (with Jacobians) and mj_inverse (without), on the same 2 threads. Prints a
+table and writes DIR/estimator_speed.json. Peak memory is the process's maximum RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+
+from estimator.cli import main as physfuse
+from estimator.config import load_config
+from estimator.logs import read_log
+from estimator.problem import Settings, build_problem, knot_grid
+from estimator.run import estimate, initial_trajectory
+from estimator.smoother import Linearizer
+
+
+def bare_pass_seconds(config, measurements, settings: Settings, knots: int) -> tuple[float, float]:
+    """Seconds per knot of one MuJoCo pass with and without Jacobians (2 threads)."""
+    h = float(config.load_model().opt.timestep)
+    t_ns = knot_grid(measurements, h)[:knots]
+    problem = build_problem(config, measurements, settings, t_ns)
+    qpos = initial_trajectory(problem.model, measurements, t_ns)
+    lin = Linearizer(problem)
+    try:
+        out = []
+        for jac in (True, False):
+            lin.terms(qpos, jac)  # warm up
+            start = time.perf_counter()
+            for _ in range(3):
+                lin.terms(qpos, jac)
+            out.append((time.perf_counter() - start) / 3 / (problem.T - 2))
+    finally:
+        lin.close()
+    return out[0], out[1]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--minutes", type=float, default=10.0)
+    parser.add_argument("--out", type=Path, default=Path("out/bench"))
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    log = args.out / f"humanoid_push_{args.minutes:g}min.mcap"
+    config_path = args.out / f"humanoid_push_{args.minutes:g}min.toml"
+    physfuse(
+        [
+            "simulate",
+            "humanoid_push",
+            "--seed",
+            "0",
+            "--duration",
+            str(60 * args.minutes),
+            "--out",
+            str(log),
+            "--config-out",
+            str(config_path),
+            "--quiet",
+        ]
+    )
+    config = load_config(config_path, extra_sections=("estimator", "simulate"))
+    settings = Settings.from_config(config)
+    start = time.perf_counter()
+    measurements = read_log(log, config).measurements
+    read_s = time.perf_counter() - start
+    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    start = time.perf_counter()
+    _, summary = estimate(config, measurements, settings)
+    wall = time.perf_counter() - start
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    per_jac, per_eval = bare_pass_seconds(config, measurements, settings, 400)
+    bare = per_jac * summary.knots_linearized + per_eval * summary.knots_evaluated
+    result = {
+        "log_duration_s": float(summary.duration_s),
+        "knots": summary.knots,
+        "windows": summary.windows,
+        "read_s": read_s,
+        "estimate_wall_s": wall,
+        "wall_over_duration": wall / float(summary.duration_s),
+        "linearization_passes": summary.linearizations,
+        "evaluation_passes": summary.evaluations,
+        "bare_mujoco_s": bare,
+        "overhead_over_bare_mujoco": wall / bare,
+        "mjd_inverseFD_us_per_knot": 1e6 * per_jac,
+        "mj_inverse_us_per_knot": 1e6 * per_eval,
+        "peak_rss_mb": peak_mb,
+        "rss_before_estimate_mb": rss_before,
+        "converged_windows": int(np.sum(summary.converged)),
+    }
+    rows = [
+        (
+            "log duration",
+            f"{result['log_duration_s']:.0f} s ({result['knots']} knots, "
+            f"{result['windows']} windows)",
+        ),
+        ("estimate wall time", f"{wall:.1f} s = {result['wall_over_duration']:.2f}× the log"),
+        (
+            "bare MuJoCo work",
+            f"{bare:.1f} s ({summary.linearizations} linearizations, "
+            f"{summary.evaluations} evaluations)",
+        ),
+        ("overhead over bare MuJoCo", f"{result['overhead_over_bare_mujoco']:.2f}×"),
+        ("peak memory (max RSS)", f"{peak_mb:.0f} MB"),
+        ("reading the log", f"{read_s:.1f} s"),
+    ]
+    for name, value in rows:
+        print(f"{name:28s} {value}")
+    (args.out / "estimator_speed.json").write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {args.out / 'estimator_speed.json'}")
+
+
+if __name__ == "__main__":
+    main()
