@@ -26,6 +26,7 @@ from mcap_ros2.decoder import DecoderFactory
 from estimator.cli import main
 from estimator.config import load_config
 from estimator.logs import read_log
+from estimator.logs.ros2_types import CONTACT_ARRAY_MSG, CONTACT_MSG, message_definition
 from estimator.simulate import (
     SCENARIOS,
     SimulationError,
@@ -48,7 +49,7 @@ from estimator.simulate.sensors import (
     MocapPoses,
     quat_mul,
 )
-from estimator.simulate.writer import CONTACT_ARRAY_MSG, CONTACT_MSG, Ros2Writer, message_definition
+from estimator.simulate.writer import Ros2Writer
 from physics.dynamics import make_dynamics
 from physics.model import load_model
 

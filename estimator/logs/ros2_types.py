@@ -64,19 +64,78 @@ def normalize_type(type_name: str) -> str:
     return type_name
 
 
+CONTACT = "physfuse_msgs/msg/Contact"
+CONTACT_ARRAY = "physfuse_msgs/msg/ContactArray"
+
+# The definitions in msgs/physfuse_msgs/msg/ (tests check that they match the files).
+CONTACT_MSG = """\
+# One contact between two geoms over one timestep, from physfuse's ground truth (the
+# simulator) or its estimate (the smoother). Impulses follow Todorov 2014 and MuJoCo: they
+# are expressed in the contact frame, whose first axis is the contact normal (pointing from
+# geom1 toward geom2) and whose other two axes span the tangent plane.
+
+# Algorithm 5 branch of the impulse (the same values as MuJoCo's mjtConstraintState).
+uint8 SEPARATING=0   # impulse 0: the contact is opening (tip of the friction cone)
+uint8 STICKING=1     # impulse strictly inside the friction cone: no slip
+uint8 SLIDING=4      # impulse on the surface of the friction cone: slipping
+
+string body1                            # body of geom1 ("world" for the floor)
+string body2                            # body of geom2
+string geom1                            # geom names; "#<id>" for an unnamed geom
+string geom2
+geometry_msgs/Point position            # contact point, world frame [m]
+geometry_msgs/Quaternion orientation    # R_world_contact: columns normal, tangent1, tangent2
+uint8 dim                               # MuJoCo condim: 1 frictionless, 3 sliding, 4 +torsional,
+                                        # 6 +rolling friction
+float64[6] impulse                      # contact-frame impulse over the step [N*s, N*m*s]:
+                                        # normal, tangent1, tangent2, torsional, rolling1,
+                                        # rolling2; entries past dim are 0
+float64[6] force                        # impulse / timestep [N, N*m], the same layout
+uint8 branch                            # SEPARATING, STICKING or SLIDING
+"""
+
+CONTACT_ARRAY_MSG = """\
+# Every contact of one timestep. On the body of geom2 the contact applies
+#   F_world = R_world_contact * force[0:3]
+#   M_world = R_world_contact * (force[3], force[4], force[5])   (torsional, rolling; condim >= 4)
+# at `position`, and the opposite wrench on the body of geom1.
+
+std_msgs/Header header                  # stamp: the start of the step; frame_id: "world"
+float64 timestep                        # h [s]: impulse = force * timestep
+physfuse_msgs/Contact[] contacts
+"""
+
+PHYSFUSE_MSGS: Mapping[str, str] = {CONTACT: CONTACT_MSG, CONTACT_ARRAY: CONTACT_ARRAY_MSG}
+
+_SEPARATOR = "=" * 80
+
+
 @cache
 def typestore() -> Typestore:
-    """rosbags' ROS 2 Jazzy type store with the mocap4r2 messages registered."""
+    """rosbags' ROS 2 Jazzy type store with the mocap4r2 and physfuse_msgs types registered."""
     store = get_typestore(Stores.ROS2_JAZZY)
     types = {}
-    for name, text in _MOCAP4R2_MSGS.items():
+    for name, text in {**_MOCAP4R2_MSGS, **PHYSFUSE_MSGS}.items():
         types.update(get_types_from_msg(text, name))
     store.register(types)
     return store
 
 
 @cache
-def message_definition(type_name: str) -> str:
-    """The rosbag2 schema text (`ros2msg` encoding) for a message type."""
-    text, _ = typestore().generate_msgdef(type_name, ros_version=2)
-    return text
+def message_definition(msg_type: str) -> str:
+    """The `ros2msg` schema text of a type, as rosbag2 stores it.
+
+    physfuse_msgs types keep their documented text (comments included); their nested standard
+    types follow after `===` separators.
+    """
+    generated, _ = typestore().generate_msgdef(msg_type, ros_version=2)
+    if msg_type not in PHYSFUSE_MSGS:
+        return generated
+    blocks = generated.split(_SEPARATOR + "\n")
+    out = [PHYSFUSE_MSGS[msg_type]]
+    for block in blocks[1:]:
+        first_line, _, _ = block.partition("\n")
+        name = first_line.removeprefix("MSG: ")
+        full = normalize_type(name)
+        out.append(f"MSG: {name}\n{PHYSFUSE_MSGS[full]}" if full in PHYSFUSE_MSGS else block)
+    return f"{_SEPARATOR}\n".join(part if part.endswith("\n") else part + "\n" for part in out)

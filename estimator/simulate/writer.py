@@ -35,7 +35,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from functools import cache
 from pathlib import Path
 from typing import IO, Any, NamedTuple
 
@@ -46,60 +45,14 @@ from mcap.well_known import SchemaEncoding
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_ros2._dynamic import EncoderFunction, serialize_dynamic
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-from rosbags.typesys.store import Typestore
 
 from estimator.logs import ros2_types
+from estimator.logs.ros2_types import CONTACT_ARRAY
 from physics.result import Constraints
 
 NS = 1_000_000_000
 
 ODOMETRY = "nav_msgs/msg/Odometry"
-CONTACT = "physfuse_msgs/msg/Contact"
-CONTACT_ARRAY = "physfuse_msgs/msg/ContactArray"
-
-# The definitions in msgs/physfuse_msgs/msg/ (tests check that they match the files).
-CONTACT_MSG = """\
-# One contact between two geoms over one timestep, from physfuse's ground truth (the
-# simulator) or its estimate (the smoother). Impulses follow Todorov 2014 and MuJoCo: they
-# are expressed in the contact frame, whose first axis is the contact normal (pointing from
-# geom1 toward geom2) and whose other two axes span the tangent plane.
-
-# Algorithm 5 branch of the impulse (the same values as MuJoCo's mjtConstraintState).
-uint8 SEPARATING=0   # impulse 0: the contact is opening (tip of the friction cone)
-uint8 STICKING=1     # impulse strictly inside the friction cone: no slip
-uint8 SLIDING=4      # impulse on the surface of the friction cone: slipping
-
-string body1                            # body of geom1 ("world" for the floor)
-string body2                            # body of geom2
-string geom1                            # geom names; "#<id>" for an unnamed geom
-string geom2
-geometry_msgs/Point position            # contact point, world frame [m]
-geometry_msgs/Quaternion orientation    # R_world_contact: columns normal, tangent1, tangent2
-uint8 dim                               # MuJoCo condim: 1 frictionless, 3 sliding, 4 +torsional,
-                                        # 6 +rolling friction
-float64[6] impulse                      # contact-frame impulse over the step [N*s, N*m*s]:
-                                        # normal, tangent1, tangent2, torsional, rolling1,
-                                        # rolling2; entries past dim are 0
-float64[6] force                        # impulse / timestep [N, N*m], the same layout
-uint8 branch                            # SEPARATING, STICKING or SLIDING
-"""
-
-CONTACT_ARRAY_MSG = """\
-# Every contact of one timestep. On the body of geom2 the contact applies
-#   F_world = R_world_contact * force[0:3]
-#   M_world = R_world_contact * (force[3], force[4], force[5])   (torsional, rolling; condim >= 4)
-# at `position`, and the opposite wrench on the body of geom1.
-
-std_msgs/Header header                  # stamp: the start of the step; frame_id: "world"
-float64 timestep                        # h [s]: impulse = force * timestep
-physfuse_msgs/Contact[] contacts
-"""
-
-PHYSFUSE_MSGS: Mapping[str, str] = {CONTACT: CONTACT_MSG, CONTACT_ARRAY: CONTACT_ARRAY_MSG}
-
-_SEPARATOR = "=" * 80
-
 # rosbag2's QoS profiles (metadata version 9 spelling): sensor data is best effort, state and
 # commands are reliable; both volatile, default deadline/lifespan/lease ("infinite").
 _INFINITE = "{sec: 9223372036, nsec: 854775807}"
@@ -122,37 +75,6 @@ def qos_profile(reliability: str) -> str:
 
 SENSOR_QOS = qos_profile("best_effort")
 RELIABLE_QOS = qos_profile("reliable")
-
-
-@cache
-def _typestore() -> Typestore:
-    """rosbags' ROS 2 Jazzy type store with the physfuse_msgs types registered."""
-    store = get_typestore(Stores.ROS2_JAZZY)
-    types = {}
-    for name, text in PHYSFUSE_MSGS.items():
-        types.update(get_types_from_msg(text, name))
-    store.register(types)
-    return store
-
-
-@cache
-def message_definition(msg_type: str) -> str:
-    """The `ros2msg` schema text of a type, as rosbag2 stores it.
-
-    physfuse_msgs types keep their documented text (comments included); their nested standard
-    types follow after `===` separators.
-    """
-    if msg_type not in PHYSFUSE_MSGS:
-        return ros2_types.message_definition(msg_type)
-    generated, _ = _typestore().generate_msgdef(msg_type, ros_version=2)
-    blocks = generated.split(_SEPARATOR + "\n")
-    out = [PHYSFUSE_MSGS[msg_type]]
-    for block in blocks[1:]:
-        first_line, _, _ = block.partition("\n")
-        name = first_line.removeprefix("MSG: ")
-        full = ros2_types.normalize_type(name)
-        out.append(f"MSG: {name}\n{PHYSFUSE_MSGS[full]}" if full in PHYSFUSE_MSGS else block)
-    return f"{_SEPARATOR}\n".join(part if part.endswith("\n") else part + "\n" for part in out)
 
 
 class Ros2Writer:
@@ -251,7 +173,7 @@ class Ros2Writer:
     def _schema(self, msg_type: str) -> tuple[Schema, EncoderFunction]:
         entry = self._schemas.get(msg_type)
         if entry is None:
-            text = message_definition(msg_type)
+            text = ros2_types.message_definition(msg_type)
             data = text.encode()
             schema_id = self._writer.register_schema(msg_type, SchemaEncoding.ROS2, data)
             schema = Schema(id=schema_id, name=msg_type, encoding=SchemaEncoding.ROS2, data=data)
