@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import mujoco
@@ -79,7 +79,8 @@ def estimate(
     kept_until = 0
     for i, s in enumerate(starts):
         e = min(T, s + W)
-        problem = build_problem(config, measurements, settings, t_ns[s:e], compiled)
+        window = {name: _within(m, t_ns[s], t_ns[e - 1]) for name, m in measurements.items()}
+        problem = build_problem(config, window, settings, t_ns[s:e], compiled)
         if nb is None:
             nb = problem.nb
             bias = np.zeros((T, nb))
@@ -130,6 +131,16 @@ def estimate(
         **passes,
     )
     return est, summary
+
+
+WINDOW_MARGIN_NS = 1_000_000_000  # samples kept around a window: interpolation, held commands
+
+
+def _within(m: Measurement, t0_ns: int, t1_ns: int) -> Measurement:
+    """The samples of m within [t0, t1] ± WINDOW_MARGIN_NS (a window's problem needs no more)."""
+    i0 = int(np.searchsorted(m.t_ns, t0_ns - WINDOW_MARGIN_NS, side="left"))
+    i1 = int(np.searchsorted(m.t_ns, t1_ns + WINDOW_MARGIN_NS, side="right"))
+    return replace(m, t_ns=m.t_ns[i0:i1], log_time_ns=m.log_time_ns[i0:i1], values=m.values[i0:i1])
 
 
 # ---------------------------------------------------------------------------------------------
