@@ -277,10 +277,10 @@ def build_problem(
                     )
                 )
         elif stream.kind == "imu":
-            values, counts = averaged_at_knots(m, t_ns)
-            scale = 1.0 / np.sqrt(np.maximum(counts, 1))
-            accel = values[:, 0, 7:10]
-            gyro = values[:, 0, 4:7]
+            accel_values, accel_counts = averaged_at_knots(m, t_ns, step_interval=True)
+            gyro_values, gyro_counts = averaged_at_knots(m, t_ns)
+            accel = accel_values[:, 0, 7:10]
+            gyro = gyro_values[:, 0, 4:7]
             bias = slice(nb, nb + 6)
             blocks.append(
                 SensorBlock(
@@ -298,8 +298,8 @@ def build_problem(
                 )
             )
             # averaging n samples per knot: σ/√n (per knot, applied at whitening)
-            blocks[-2] = _scaled(blocks[-2], scale)
-            blocks[-1] = _scaled(blocks[-1], scale)
+            blocks[-2] = _scaled(blocks[-2], 1.0 / np.sqrt(np.maximum(accel_counts, 1)))
+            blocks[-1] = _scaled(blocks[-1], 1.0 / np.sqrt(np.maximum(gyro_counts, 1)))
             imu_streams.append(name)
             walks.append(
                 np.r_[np.full(3, noise["accel_bias_walk"]), np.full(3, noise["gyro_bias_walk"])]
@@ -319,7 +319,7 @@ def build_problem(
                     )
                 )
         elif stream.kind == "wrench":
-            values, _ = averaged_at_knots(m, t_ns)
+            values, _ = averaged_at_knots(m, t_ns, step_interval=True)
             blocks.append(
                 SensorBlock(
                     name, "vector", adr[0], values[:, 0, :3], np.full(3, noise["force_std"])
@@ -354,10 +354,18 @@ def interpolated_at_knots(m: Measurement, t_ns: np.ndarray) -> np.ndarray:
     return resample(m, t_ns, max_gap_ns=int(2.5 * period))
 
 
-def averaged_at_knots(m: Measurement, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(T, E, K) mean of the samples within ±h/2 of each knot (NaN where none) and (T,) counts."""
+def averaged_at_knots(
+    m: Measurement, t_ns: np.ndarray, step_interval: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
+    """(T, E, K) mean of the samples each knot stands for (NaN where none) and (T,) counts.
+
+    step_interval=False: samples within ±h/2 of t_k (a velocity-stage quantity, e.g. gyro);
+    True: samples within [t_k, t_k + h), the step over which qacc_k acts in the Euler step
+    (acceleration-stage quantities: accelerometer, force/torque).
+    """
     h_ns = int(t_ns[1] - t_ns[0]) if len(t_ns) > 1 else 1
-    edges = np.concatenate([t_ns - h_ns // 2, [t_ns[-1] + h_ns - h_ns // 2]])
+    start = t_ns if step_interval else t_ns - h_ns // 2
+    edges = np.concatenate([start, [start[-1] + h_ns]])
     index = np.searchsorted(edges, m.t_ns, side="right") - 1
     ok = (index >= 0) & (index < len(t_ns))
     sums = np.zeros((len(t_ns), *m.values.shape[1:]))
