@@ -167,37 +167,30 @@ def model_with_sensors(
     return model, names
 
 
+# MuJoCo sensors measuring each stream kind, per element, in measurement order: (type, tag)
+_SENSORS_OF_KIND: Mapping[str, tuple[tuple[mujoco.mjtSensor, str], ...]] = {
+    "pose": ((_SENS.mjSENS_FRAMEPOS, "pos"), (_SENS.mjSENS_FRAMEQUAT, "quat")),
+    "tf": ((_SENS.mjSENS_FRAMEPOS, "pos"), (_SENS.mjSENS_FRAMEQUAT, "quat")),
+    "rigid_bodies": ((_SENS.mjSENS_FRAMEPOS, "pos"), (_SENS.mjSENS_FRAMEQUAT, "quat")),
+    "markers": ((_SENS.mjSENS_FRAMEPOS, "pos"),),
+    "imu": ((_SENS.mjSENS_ACCELEROMETER, "accel"), (_SENS.mjSENS_GYRO, "gyro")),
+    "joint_state": ((_SENS.mjSENS_JOINTPOS, "pos"),),
+    "wrench": ((_SENS.mjSENS_FORCE, "force"), (_SENS.mjSENS_TORQUE, "torque")),
+}
+_OBJ_OF_ELEMENT = {"body": _OBJ.mjOBJ_XBODY, "site": _OBJ.mjOBJ_SITE, "joint": _OBJ.mjOBJ_JOINT}
+
+
 def _add_sensors(spec: mujoco.MjSpec, stream: StreamConfig) -> list[str]:
+    """Add the stream's sensors to `spec`; returns their names, elements × sensors order."""
     added: list[str] = []
-
-    def add(kind: mujoco.mjtSensor, objtype: mujoco.mjtObj, objname: str, tag: str) -> None:
-        sensor = spec.add_sensor()
-        sensor.name = f"physfuse/{stream.name}/{objname}/{tag}"
-        sensor.type = kind
-        sensor.objtype = objtype
-        sensor.objname = objname
-        added.append(sensor.name)
-
-    element_obj = {"body": _OBJ.mjOBJ_XBODY, "site": _OBJ.mjOBJ_SITE}
-    if stream.kind in ("pose", "tf", "rigid_bodies"):
-        for element in stream.elements:
-            obj = element_obj[stream.element_type]
-            add(_SENS.mjSENS_FRAMEPOS, obj, element, "pos")
-            add(_SENS.mjSENS_FRAMEQUAT, obj, element, "quat")
-    elif stream.kind == "markers":
-        for element in stream.elements:
-            add(_SENS.mjSENS_FRAMEPOS, _OBJ.mjOBJ_SITE, element, "pos")
-    elif stream.kind == "imu":
-        site = stream.elements[0]
-        add(_SENS.mjSENS_ACCELEROMETER, _OBJ.mjOBJ_SITE, site, "accel")
-        add(_SENS.mjSENS_GYRO, _OBJ.mjOBJ_SITE, site, "gyro")
-    elif stream.kind == "joint_state":
-        for element in stream.elements:
-            add(_SENS.mjSENS_JOINTPOS, _OBJ.mjOBJ_JOINT, element, "pos")
-    elif stream.kind == "wrench":
-        site = stream.elements[0]
-        add(_SENS.mjSENS_FORCE, _OBJ.mjOBJ_SITE, site, "force")
-        add(_SENS.mjSENS_TORQUE, _OBJ.mjOBJ_SITE, site, "torque")
+    for element in stream.elements:
+        for kind, tag in _SENSORS_OF_KIND.get(stream.kind, ()):
+            sensor = spec.add_sensor()
+            sensor.name = f"physfuse/{stream.name}/{element}/{tag}"
+            sensor.type = kind
+            sensor.objtype = _OBJ_OF_ELEMENT[stream.element_type]
+            sensor.objname = element
+            added.append(sensor.name)
     return added
 
 
