@@ -110,7 +110,7 @@ def estimate(
             break
     assert bias is not None
     full = build_problem(config, measurements, settings, t_ns, compiled)
-    est = _collect(full, qpos, bias, std, config)
+    est = collect_estimate(full, qpos, bias, std, config)
     lin = Linearizer(full)
     try:
         _, cost_by_type = lin.cost(qpos, bias)
@@ -286,9 +286,12 @@ def _fill_gaps(model: mujoco.MjModel, qpos: np.ndarray, measured: np.ndarray) ->
 # the result
 
 
-def _collect(
+def collect_estimate(
     problem: Problem, qpos: np.ndarray, bias: np.ndarray, std: np.ndarray, config: Config
 ) -> Estimate:
+    """The Estimate of a trajectory qpos (T, nq) with IMU biases (T, nb) on problem's knots:
+    v, a by finite differences, forces and impulses by the native analytic inverse, residuals
+    of every factor. std: (T, nv) marginal standard deviations (NaN where unknown)."""
     model, h = problem.model, problem.h
     v = velocities(model, qpos, h)
     a = accelerations(v, h)
