@@ -276,11 +276,10 @@ def _print_truth(report: dict[str, Any]) -> None:
         value, raw_value = report["summary"][key], raw.get(key, float("nan"))
         print(f"  {key:28s} {value:10.4g} {raw_value:10.4g}")
     for body, d in report["details"]["contacts"].items():
-        if isinstance(d, dict):
-            print(
-                f"  contact {body:20s} force {d['force_N']:8.3g} N, precision "
-                f"{d['precision']:.3f}, recall {d['recall']:.3f}"
-            )
+        print(
+            f"  contact {body:20s} force {d['force_N']:8.3g} N, precision "
+            f"{d['precision']:.3f}, recall {d['recall']:.3f}"
+        )
     for note in report["notes"]:
         print(f"  note: {note}")
 
