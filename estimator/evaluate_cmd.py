@@ -131,6 +131,11 @@ def against_truth(
         raw = compare_states(states_from_qpos(model, t_ns, qpos), truth, model, occlusions)
     else:
         notes.append("no --config: occlusion metrics and the raw measurements are skipped")
+    if est.imu_bias and not truth.imu_bias:
+        notes.append(
+            f"{truth_path} has no {PREFIX}/imu_bias topics (simulated before they were "
+            "written): IMU bias metrics skipped"
+        )
     metrics = compare_states(est, truth, model, occlusions)
     return {
         "estimate": str(estimate_path),
