@@ -16,7 +16,6 @@ also avoids GTSAM's CustomFactor path, which copies the whole Values on every ca
 
 from __future__ import annotations
 
-import functools
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -102,7 +101,8 @@ class Linearizer:
         self.knots = [KnotModel(problem, problem.settings.path) for _ in range(THREADS)]
         self.rotations = _RotationDofs.of(problem.model)
         rotation = {d + i for _, d in self.rotations.quat_dofs for i in range(3)}
-        self.vector_dof = min(set(range(problem.model.nv)) - rotation, default=-1)
+        # a dof where difference Jacobians are ±1 (any dof if all are rotations: overwritten)
+        self.vector_dof = min(set(range(problem.model.nv)) - rotation, default=0)
         self.pool = ThreadPoolExecutor(THREADS)
         self.span = 4 if problem.settings.jerk_std > 0 else 3  # keys a knot's rows reach
         self.passes = {True: 0, False: 0}  # MuJoCo passes over all knots, with/without Jacobians
@@ -132,33 +132,34 @@ class Linearizer:
         list(self.pool.map(work, [interior[i::THREADS] for i in range(THREADS)], self.knots))
         if not with_jacobians:
             return Terms(a[1:-1], u, s)
-        # chain rule through v_k = (q_k ⊖ q_{k−1})/h and a_k = (v_{k+1} − v_k)/h
+        # chain rule through v_k = (q_k ⊖ q_{k−1})/h and a_k = (v_{k+1} − v_k)/h:
+        # ∂v_k/∂(x_{k−1}, x_k) = (d1_k, d2_k)/h, ∂a_k/∂(x_{k−1}, x_k, x_{k+1}) =
+        # (−d1_k, d1_{k+1} − d2_k, d2_{k+1})/h², with d1, d2 of the pair (q_{k−1}, q_k)
         d1, d2 = difference_jacobians(p.model, self.rotations, qpos[:-1], qpos[1:])
-        dv = (d1[:-1] / h, d2[:-1] / h)  # ∂v_k/∂(x_{k−1}, x_k)
-        da = (-d1[:-1] / h**2, (d1[1:] - d2[:-1]) / h**2, d2[1:] / h**2)  # ∂a_k/∂(x_{k−1…k+1})
 
         def chained(D: np.ndarray) -> np.ndarray:
+            """[P d1_k,  D_q + P d2_k + Q d1_{k+1},  Q d2_{k+1}] with P = D_v/h − D_a/h²,
+            Q = D_a/h² (the Jacobians over x_{k−1}, x_k, x_{k+1})."""
             Dq, Dv, Da = (D[j].transpose(0, 2, 1) for j in range(3))
-            times = self._times_difference
-            return np.concatenate(
-                [
-                    times(Dv, dv[0]) + times(Da, da[0]),
-                    Dq + times(Dv, dv[1]) + times(Da, da[1]),
-                    times(Da, da[2]),
-                ],
-                axis=2,
-            )
+            Q = Da / h**2
+            P = Dv / h - Q
+            out = np.empty((*Dq.shape[:2], 3 * nv))
+            out[:, :, :nv] = self._times_difference(P, d1[:-1])
+            out[:, :, nv : 2 * nv] = Dq + self._times_difference(P, d2[:-1])
+            out[:, :, nv : 2 * nv] += self._times_difference(Q, d1[1:])
+            out[:, :, 2 * nv :] = self._times_difference(Q, d2[1:])
+            return out
 
-        return Terms(a[1:-1], u, s, chained(F), chained(S), np.concatenate(da, axis=2))
+        da = np.concatenate([-d1[:-1], d1[1:] - d2[:-1], d2[1:]], axis=2) / h**2
+        return Terms(a[1:-1], u, s, chained(F), chained(S), da)
 
-    def _times_difference(self, D: np.ndarray, M: np.ndarray) -> np.ndarray:
-        """D @ M (K, m, nv) for M (K, nv, nv) = c I on vector dofs plus 3×3 rotation blocks
-        (the difference Jacobians and their combinations): c D, rotation columns redone."""
-        vector = self.vector_dof
-        out = D * M[:, vector, vector][:, None, None] if vector >= 0 else np.zeros(D.shape)
+    def _times_difference(self, D: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """D @ d (K, m, nv) for a difference Jacobian d (K, nv, nv) = ±I on vector dofs, 3×3
+        blocks on rotations: ±D with the rotation columns redone."""
+        out = D * d[:, self.vector_dof, self.vector_dof][:, None, None]
         for _, dadr in self.rotations.quat_dofs:
             rot = slice(dadr, dadr + 3)
-            out[:, :, rot] = D[:, :, rot] @ M[:, rot, rot]
+            out[:, :, rot] = D[:, :, rot] @ d[:, rot, rot]
         return out
 
     # -- whitened, robustly weighted rows of every factor --------------------------------------
@@ -384,12 +385,19 @@ class BandedSystem:
         d = np.einsum("kii->ki", self.diag).reshape(-1)
         s = 1.0 / np.sqrt(d + 1e-12 * max(float(d.max()), 1.0))
         S = s.reshape(T, nz)
-        ab = np.zeros((len(self.lower) * nz + nz, T * nz))
+        # column strip of key k: C_k = [H_kk; H_{k+1,k}; …] (span·nz × nz), zero-padded below;
+        # LAPACK's ab[d, k nz + c] = H[k nz + c + d, k nz + c] = C_k[c + d, c]
+        span = len(self.lower) + 1
+        C = np.zeros((T, (span + 1) * nz, nz))
         for offset, blocks in enumerate([self.diag, *self.lower]):
             n = len(blocks)
-            scaled = S[offset : offset + n, :, None] * blocks * S[:n, None, :]
-            band, col, keep = _band_indices(offset, n, nz)
-            ab[band, col] = scaled.reshape(n, -1)[:, keep]
+            C[:n, offset * nz : (offset + 1) * nz] = S[offset : offset + n, :, None] * blocks
+        C *= S[:, None, :]
+        st = C.strides
+        skewed = np.lib.stride_tricks.as_strided(
+            C, shape=(T, span * nz, nz), strides=(st[0], st[1], st[1] + st[2]), writeable=False
+        )
+        ab = skewed.transpose(1, 0, 2).reshape(span * nz, T * nz)
         return s, ab
 
     def damped_step(self, s: np.ndarray, ab: np.ndarray, lam: float) -> np.ndarray:
@@ -400,17 +408,6 @@ class BandedSystem:
         factor = scipy.linalg.cholesky_banded(damped, lower=True, check_finite=False)
         y = scipy.linalg.cho_solve_banded((factor, True), -s * self.g.reshape(-1))
         return (s * y).reshape(self.g.shape)
-
-
-@functools.cache
-def _band_indices(offset: int, n: int, nz: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Where the blocks H_{k+offset, k}, k < n, go in LAPACK lower band storage: row i − j and
-    column j of each kept entry (i ≥ j), and which of a block's nz² entries are kept."""
-    r, c = np.divmod(np.arange(nz * nz), nz)
-    keep = offset * nz + r >= c
-    band = np.broadcast_to(offset * nz + r[keep] - c[keep], (n, int(keep.sum())))
-    col = np.arange(n)[:, None] * nz + c[keep][None, :]
-    return band, col, keep
 
 
 def solve_window(
