@@ -28,6 +28,7 @@ that knot (mocap outliers).
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -36,7 +37,6 @@ import mujoco
 import numpy as np
 import scipy.linalg
 from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
-from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from estimator.config import Config
@@ -113,14 +113,16 @@ class TangentChart:
         """a ⊖ b (filterpy's residual_x)."""
         out = a - b
         for i in self.rotations:
-            out[i] = (Rotation.from_rotvec(b[i]).inv() * Rotation.from_rotvec(a[i])).as_rotvec()
+            out[i] = _log(_exp(a[i]), _exp(b[i]))
         return out
 
     def add(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:
         """x ⊕ dx (filterpy's state_add)."""
         out = x + dx
         for i in self.rotations:
-            out[i] = (Rotation.from_rotvec(x[i]) * Rotation.from_rotvec(dx[i])).as_rotvec()
+            q = _exp(x[i])
+            mujoco.mju_quatIntegrate(q, np.ascontiguousarray(dx[i]), 1.0)  # Exp(x) Exp(dx)
+            out[i] = _log(q, _IDENTITY)
         return out
 
     def mean(self, points: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -128,15 +130,46 @@ class TangentChart:
         rotation (Gauss–Newton from the coordinate mean), the plain mean elsewhere."""
         m = weights @ points
         for i in self.rotations:
-            R = Rotation.from_rotvec(points[:, i])
-            mean = Rotation.from_rotvec(m[i])
+            R = _exp_batch(points[:, i])  # (N, 4)
             for _ in range(20):
-                step = weights @ (mean.inv() * R).as_rotvec()
-                mean = mean * Rotation.from_rotvec(step)
+                mean = np.tile(_exp(m[i]), (len(R), 1))
+                step = weights @ quat_errors(R, mean)[0]  # Σ w_i Log(m⁻¹ R_i)
+                m[i] = self.add(m, _on(i, step, len(m)))[i]
                 if np.linalg.norm(step) < 1e-13:
                     break
-            m[i] = mean.as_rotvec()
         return m
+
+
+_IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+def _exp(rotvec: np.ndarray) -> np.ndarray:
+    """(4,) the unit quaternion Exp(rotvec)."""
+    q = _IDENTITY.copy()
+    mujoco.mju_quatIntegrate(q, np.ascontiguousarray(rotvec, dtype=float), 1.0)
+    return q
+
+
+def _log(q: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(3,) Log(reference⁻¹ q), the short way round (mju_subQuat)."""
+    out = np.zeros(3)
+    mujoco.mju_subQuat(out, q, reference)
+    return out
+
+
+def _exp_batch(rotvec: np.ndarray) -> np.ndarray:
+    """(N, 4) Exp of each row of rotvec (N, 3): (cos θ/2, sin θ/2 · axis)."""
+    theta = np.linalg.norm(rotvec, axis=1)
+    half = 0.5 * theta
+    scale = np.where(theta > 1e-12, np.sin(half) / np.where(theta > 1e-12, theta, 1.0), 0.5)
+    return np.column_stack([np.cos(half), rotvec * scale[:, None]])
+
+
+def _on(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """(n,) zeros with values at index."""
+    out = np.zeros(n)
+    out[index] = values
+    return out
 
 
 def _psd_sqrt(P: np.ndarray) -> np.ndarray:
@@ -160,22 +193,33 @@ class _Physics:
         self.data = mujoco.MjData(self.model)
         self.h = problem.h
         self.fd_eps = problem.settings.fd_eps
+        self.warmstart = np.zeros(self.model.nv)  # the solver's start: the last nominal qacc
 
     def _set(self, q: np.ndarray, v: np.ndarray, u: np.ndarray) -> None:
         d = self.data
         d.qpos[:], d.qvel[:], d.qfrc_applied[:] = q, v, u
         d.ctrl[:] = 0.0  # the commands' force is already in u
+        d.qacc_warmstart[:] = self.warmstart
 
-    def step(self, q: np.ndarray, v: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(q_{k+1}, v_{k+1}): mj_step (semi-implicit Euler)."""
+    def step(
+        self, q: np.ndarray, v: np.ndarray, u: np.ndarray, nominal: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(q_{k+1}, v_{k+1}): mj_step (semi-implicit Euler). nominal: the mean state, whose
+        qacc warm-starts the solver for the states around it (sigma points)."""
         self._set(q, v, u)
         mujoco.mj_step(self.model, self.data)
+        if nominal:
+            self.warmstart = self.data.qacc.copy()
         return self.data.qpos.copy(), self.data.qvel.copy()
 
-    def sensors(self, q: np.ndarray, v: np.ndarray, u: np.ndarray) -> np.ndarray:
+    def sensors(
+        self, q: np.ndarray, v: np.ndarray, u: np.ndarray, nominal: bool = False
+    ) -> np.ndarray:
         """(ns,) sensordata at (q, v, a = forward(q, v, u))."""
         self._set(q, v, u)
         mujoco.mj_forward(self.model, self.data)
+        if nominal:
+            self.warmstart = self.data.qacc.copy()
         return self.data.sensordata.copy()
 
     def transition(
@@ -292,7 +336,7 @@ class _Knot:
         for b, r in zip(self.blocks, self.rows, strict=True):
             n = r.stop - r.start
             d2 = float(y[r] @ np.linalg.solve(S[r, r], y[r]))
-            if d2 <= chi2.ppf(GATE_PROBABILITY, n):
+            if d2 <= _gate_threshold(n):
                 keep.extend(range(r.start, r.stop))
             else:
                 rejected.append(b.stream)
@@ -303,6 +347,11 @@ class _Knot:
 # the filters
 
 
+@functools.cache
+def _gate_threshold(dim: int) -> float:
+    return float(chi2.ppf(GATE_PROBABILITY, dim))
+
+
 class _ManifoldEKF(ExtendedKalmanFilter):
     """filterpy's EKF whose prediction of x is the physics step (set `step` before predict)."""
 
@@ -310,6 +359,35 @@ class _ManifoldEKF(ExtendedKalmanFilter):
 
     def predict_x(self, u: object = 0) -> None:
         self.x = self.step()
+
+
+class _ManifoldUKF(UnscentedKalmanFilter):
+    """filterpy's UKF with its sums over sigma points as matrix products (same formulas)."""
+
+    def cross_variance(
+        self, x: np.ndarray, z: np.ndarray, sigmas_f: np.ndarray, sigmas_h: np.ndarray
+    ) -> np.ndarray:
+        """Pxz = Σ Wc_i (χ_i ⊖ x)(ζ_i − z)ᵀ."""
+        dx = np.array([self.residual_x(s, x) for s in sigmas_f])
+        return (dx.T * self.Wc) @ (sigmas_h - z)
+
+
+def _unscented_transform(
+    sigmas: np.ndarray,
+    Wm: np.ndarray,
+    Wc: np.ndarray,
+    noise_cov: np.ndarray | None = None,
+    mean_fn: Callable | None = None,
+    residual_fn: Callable | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """filterpy's unscented_transform, P = Σ Wc_i (χ_i ⊖ x)(χ_i ⊖ x)ᵀ + noise as one product."""
+    x = mean_fn(sigmas, Wm) if mean_fn is not None else Wm @ sigmas
+    if residual_fn is None or residual_fn is np.subtract:
+        y = sigmas - x
+    else:
+        y = np.array([residual_fn(s, x) for s in sigmas])
+    P = (y.T * Wc) @ y
+    return x, P if noise_cov is None else P + noise_cov
 
 
 class _Filter:
@@ -340,7 +418,7 @@ class _Filter:
             points = MerweScaledSigmaPoints(
                 self.n, UKF_ALPHA, UKF_BETA, UKF_KAPPA, sqrt_method=_psd_sqrt
             )
-            self.ukf = UnscentedKalmanFilter(
+            self.ukf = _ManifoldUKF(
                 self.n,
                 1,
                 problem.h,
@@ -432,22 +510,26 @@ class _Filter:
         """A sigma point through the physics step, in coordinates around q_to."""
         nv = self.nv
         q_next, v_next = self.physics.step(self.chart.qpos(q_from, x), x[nv : 2 * nv], u)
-        return np.r_[self.chart.coordinates(q_to, q_next), v_next, x[2 * nv :]]
+        return np.concatenate([self.chart.coordinates(q_to, q_next), v_next, x[2 * nv :]])
 
     def ukf_predict(self, k: int) -> None:
         assert self.ukf is not None
         x, nv = self.ukf.x, self.nv
         q, v = self.chart.qpos(self.reference, x), x[nv : 2 * nv]
-        q_to, _ = self.physics.step(q, v, self.u[k])  # the mean's step: the next reference
+        q_to, _ = self.physics.step(q, v, self.u[k], nominal=True)  # the next reference
         self.ukf.Q = self._process_noise(k, q, v)
         q_from, self.reference = self.reference, q_to
-        self.ukf.predict(q_from=q_from, q_to=q_to, u=self.u[k])
+        self.ukf.predict(UT=_unscented_transform, q_from=q_from, q_to=q_to, u=self.u[k])
 
     def ukf_update(self, k: int) -> None:
+        """Sigma points of the prior through the sensors; gate per block; filterpy's update."""
         assert self.ukf is not None
         ukf, nv = self.ukf, self.nv
         knot = _Knot.at(self.p, k)
         if knot.blocks:
+            q, v = self.chart.qpos(self.reference, ukf.x), ukf.x[nv : 2 * nv]
+            R = np.diag(knot.sigma**2) + self._sensor_force_noise(knot, k, q, v)
+            self.physics.sensors(q, v, self.u[k], nominal=True)
             sigmas = ukf.sigmas_f
             s = np.array(
                 [
@@ -458,10 +540,8 @@ class _Filter:
                 ]
             )
             predicted = knot.predict(s, sigmas[:, 2 * nv :])  # (N, m)
+            # filterpy's update calls hx on the same sigma points: reuse the evaluations
             cache = {x.tobytes(): row for x, row in zip(sigmas, predicted, strict=True)}
-            x = ukf.x
-            q = self.chart.qpos(self.reference, x)
-            R = np.diag(knot.sigma**2) + self._sensor_force_noise(knot, k, q, x[nv : 2 * nv])
             z_mean = ukf.Wm @ predicted
             dz = predicted - z_mean
             S = (dz.T * ukf.Wc) @ dz + R
@@ -469,7 +549,10 @@ class _Filter:
             self._count(rejected)
             if keep.size:
                 ukf.update(
-                    knot.z[keep], R=R[np.ix_(keep, keep)], hx=lambda x: cache[x.tobytes()][keep]
+                    knot.z[keep],
+                    R=R[np.ix_(keep, keep)],
+                    UT=_unscented_transform,
+                    hx=lambda x: cache[x.tobytes()][keep],
                 )
                 ukf.P = 0.5 * (ukf.P + ukf.P.T)
         self._recenter(ukf.x)
