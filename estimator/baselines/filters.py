@@ -23,7 +23,8 @@ to the knots), s(q_k, v_k, a_k) + b_k; a quaternion block as Log(m⁻¹ ⊗ s) a
 Acceleration-stage sensors (accelerometer, force/torque) also see the force noise:
 R += D diag(σ_f²) Dᵀ, D = ∂s/∂u (its correlation with the same step's process noise is
 dropped). A block whose innovation fails a chi-square test at GATE_PROBABILITY is left out at
-that knot (mocap outliers).
+that knot (mocap outliers), unless its stream has been rejected for more than GATE_LOCKOUT_S
+(then the filter has drifted: accept it again rather than lose it for good).
 """
 
 from __future__ import annotations
@@ -64,11 +65,13 @@ from estimator.smoother import Linearizer
 
 METHODS = ("ekf", "ukf")
 GATE_PROBABILITY = 0.999  # a block is used when its Mahalanobis² < χ²(dim) at this quantile
+GATE_LOCKOUT_S = 0.05  # s: a stream rejected for longer is accepted again (re-acquisition)
 INITIAL_STD = 1.0  # m, rad, m/s, rad/s: the prior of q_0, v_0 before the first measurement
 FORCE_STEP = 1e-3  # N or N·m: finite-difference step of ∂(a, s)/∂u
 UNBOUNDED_FORCE_STD = 1000.0  # N or N·m: σ of an unknown force no actuator range bounds
 # MuJoCo MPC's unscented.cc: sigma points at ±√n σ, no negative weights
 UKF_ALPHA, UKF_BETA, UKF_KAPPA = 1.0, 2.0, 0.0
+UKF_START_S = 0.05  # s: the UKF takes over from the EKF that starts both filters
 
 
 # ---------------------------------------------------------------------------------------------
@@ -328,18 +331,18 @@ class _Knot:
                 out[r, b.bias] = np.eye(r.stop - r.start)
         return out
 
-    def gate(self, y: np.ndarray, S: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    def gate(self, y: np.ndarray, S: np.ndarray, accept: set[str]) -> tuple[np.ndarray, set[str]]:
         """Rows of the blocks whose innovation y (m,) with covariance S (m, m) passes the
-        chi-square test, and the streams of the rejected blocks."""
+        chi-square test (or whose stream is in `accept`), and the streams rejected."""
         keep: list[int] = []
-        rejected: list[str] = []
+        rejected: set[str] = set()
         for b, r in zip(self.blocks, self.rows, strict=True):
             n = r.stop - r.start
             d2 = float(y[r] @ np.linalg.solve(S[r, r], y[r]))
-            if d2 <= _gate_threshold(n):
+            if b.stream in accept or d2 <= _gate_threshold(n):
                 keep.extend(range(r.start, r.stop))
             else:
-                rejected.append(b.stream)
+                rejected.add(b.stream)
         return np.array(keep, dtype=int), rejected
 
 
@@ -402,7 +405,8 @@ class _Filter:
         self.nv, self.nb, self.n = nv, nb, 2 * nv + nb
         self.u = np.nan_to_num(problem.qfrc_known)
         self.force_var = _force_variance(problem)
-        self.rejected: dict[str, int] = {}
+        self.rejected: dict[str, int] = {}  # stream → knots with a block rejected
+        self.rejected_since: dict[str, int] = {}  # stream → first knot of its rejections
         self.reference = qpos0[0].copy()
         s = problem.settings
         bias_std = np.tile(
@@ -454,9 +458,22 @@ class _Filter:
         D = knot.jacobian(s, ds)
         return (D * self.force_var[k]) @ D.T
 
-    def _count(self, rejected: list[str]) -> None:
-        for stream in rejected:
-            self.rejected[stream] = self.rejected.get(stream, 0) + 1
+    def _gate(self, knot: _Knot, y: np.ndarray, S: np.ndarray) -> np.ndarray:
+        """The rows to update with: the chi-square gate, except for a stream rejected for
+        longer than GATE_LOCKOUT_S (then the filter, not the stream, has drifted)."""
+        accept = {
+            stream
+            for stream, first in self.rejected_since.items()
+            if (knot.k - first) * self.p.h > GATE_LOCKOUT_S
+        }
+        keep, rejected = knot.gate(y, S, accept)
+        for stream in {b.stream for b in knot.blocks}:
+            if stream in rejected:
+                self.rejected[stream] = self.rejected.get(stream, 0) + 1
+                self.rejected_since.setdefault(stream, knot.k)
+            else:
+                self.rejected_since.pop(stream, None)
+        return keep
 
     # -- EKF -------------------------------------------------------------------------------------
 
@@ -472,8 +489,7 @@ class _Filter:
         predicted = knot.predict(s[None], b[None])[0]
         R = np.diag(knot.sigma**2) + self._sensor_force_noise(knot, k, q, v)
         y = knot.z - predicted
-        keep, rejected = knot.gate(y, H @ self.ekf.P @ H.T + R)
-        self._count(rejected)
+        keep = self._gate(knot, y, H @ self.ekf.P @ H.T + R)
         if keep.size:
             self.ekf.update(
                 knot.z[keep],
@@ -545,8 +561,7 @@ class _Filter:
             z_mean = ukf.Wm @ predicted
             dz = predicted - z_mean
             S = (dz.T * ukf.Wc) @ dz + R
-            keep, rejected = knot.gate(knot.z - z_mean, S)
-            self._count(rejected)
+            keep = self._gate(knot, knot.z - z_mean, S)
             if keep.size:
                 ukf.update(
                     knot.z[keep],
@@ -567,19 +582,22 @@ class _Filter:
         qpos = np.zeros((T, self.p.model.nq))
         bias = np.zeros((T, self.nb))
         std = np.zeros((T, nv))
-        self.ekf_update(0)  # both filters start from the linearized update of a broad prior
+        # both filters start with the EKF from a broad prior (sigma points of a broad prior
+        # would sit metres away); the UKF takes over after UKF_START_S
+        handover = T if self.ukf is None else min(T, max(1, round(UKF_START_S / self.p.h)))
+        self.ekf_update(0)
         self._tighten_initial_velocity()
-        if self.ukf is not None:
-            self.ukf.x, self.ukf.P = self.ekf.x.copy(), self.ekf.P.copy()
-        current = self.ukf if self.ukf is not None else self.ekf
+        current: ExtendedKalmanFilter | UnscentedKalmanFilter = self.ekf
         for k in range(T):
-            if k > 0:
-                if self.ukf is not None:
-                    self.ukf_predict(k - 1)
-                    self.ukf_update(k)
-                else:
-                    self.ekf_predict(k - 1)
-                    self.ekf_update(k)
+            if 0 < k < handover:
+                self.ekf_predict(k - 1)
+                self.ekf_update(k)
+            elif k >= handover and self.ukf is not None:
+                if k == handover:
+                    self.ukf.x, self.ukf.P = self.ekf.x.copy(), self.ekf.P.copy()
+                    current = self.ukf
+                self.ukf_predict(k - 1)
+                self.ukf_update(k)
             qpos[k] = self.reference
             bias[k] = current.x[2 * nv :]
             std[k] = np.sqrt(np.clip(np.diag(current.P)[:nv], 0.0, None))
