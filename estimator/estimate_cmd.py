@@ -46,8 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--method",
         choices=CHOICES["method"],
         help="physics (default): the physics-prior smoother; baselines: kinematic (the same "
-        "smoother without physics factors, constant-acceleration prior), raw (measurements "
-        "interpolated)",
+        "smoother without physics factors, constant-acceleration prior), ekf / ukf (filters "
+        "with the forward dynamics as process model), raw (measurements interpolated)",
     )
     parser.add_argument(
         "--path", choices=CHOICES["path"], help="physics path (default: config/native)"

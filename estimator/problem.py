@@ -70,7 +70,7 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
 }
 
 CHOICES: Mapping[str, tuple[str, ...]] = {
-    "method": ("physics", "kinematic", "raw"),
+    "method": ("physics", "kinematic", "ekf", "ukf", "raw"),
     "path": ("native", "reference"),
 }
 # the kinematic baseline: no physics factors; a constant-acceleration (white jerk) prior with

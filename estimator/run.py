@@ -64,6 +64,10 @@ def estimate(
     with threadpool_limits(limits=1, user_api="blas"):
         if settings.method == "raw":
             return raw_estimate(config, measurements, settings)
+        if settings.method in ("ekf", "ukf"):
+            from estimator.baselines.filters import filter_estimate  # (it builds on this module)
+
+            return filter_estimate(config, measurements, settings, settings.method, progress)
         return smooth(config, measurements, settings, progress)
 
 

@@ -54,14 +54,7 @@ from estimator.problem import (
     model_with_sensors,
     quat_errors,
 )
-from estimator.run import (
-    Summary,
-    collect_estimate,
-    consistency_warnings,
-    initial_trajectory,
-    largest_residuals,
-)
-from estimator.smoother import Linearizer
+from estimator.run import Summary, finish, initial_trajectory
 
 METHODS = ("ekf", "ukf")
 GATE_PROBABILITY = 0.999  # a block is used when its Mahalanobis² < χ²(dim) at this quantile
@@ -664,12 +657,6 @@ def filter_estimate(
     run = _Filter(problem, qpos0, method)
     qpos, bias, std = run.run(progress)
     finite = bool(np.all(np.isfinite(qpos)))
-    est = collect_estimate(problem, qpos, bias, std, config)
-    lin = Linearizer(problem)
-    try:
-        _, cost_by_type = lin.cost(qpos, bias)
-    finally:
-        lin.close()
     warnings = [
         f"{stream}: measurements rejected by the chi-square gate (p = {GATE_PROBABILITY}) at "
         f"{n} of {problem.T} knots"
@@ -677,17 +664,4 @@ def filter_estimate(
     ]
     if not finite:
         warnings.append(f"the {method.upper()} diverged: non-finite states")
-    warnings.extend(consistency_warnings(est))
-    summary = Summary(
-        duration_s=(problem.t_ns[-1] - problem.t_ns[0]) / 1e9,
-        knots=problem.T,
-        h=problem.h,
-        windows=1,
-        iterations=[problem.T],
-        converged=[finite],
-        cost_by_type=cost_by_type,
-        largest_residuals=largest_residuals(est, problem),
-        wall_time_s=time.perf_counter() - start,
-        warnings=warnings,
-    )
-    return est, summary
+    return finish(config, problem, qpos, bias, std, start, [problem.T], [finite], warnings, {})
