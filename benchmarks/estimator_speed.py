@@ -3,10 +3,11 @@ linearization it needs, and peak memory.
 
     python benchmarks/estimator_speed.py [--minutes M] [--out DIR]
 
-Simulates an M-minute humanoid_push log (default 10), estimates it, and measures in the same
-run the bare cost of the MuJoCo work the solve needed: the same number of knot passes of
-mjd_inverseFD (with Jacobians) and mj_inverse (without), on the same 2 threads. Prints a
-table and writes DIR/estimator_speed.json. Peak memory is the process's maximum RSS.
+Simulates an M-minute humanoid_push log (default 10, in a separate process), estimates it, and
+measures in the same run the bare cost of the MuJoCo work the solve needed: the same number of
+knot passes of mjd_inverseFD (with Jacobians) and mj_inverse (without) — the MuJoCo calls
+alone, on the same 2 threads. Prints a table and writes DIR/estimator_speed.json. Peak memory
+is this process's maximum RSS (reading the log and estimating).
 """
 
 from __future__ import annotations
@@ -14,37 +15,60 @@ from __future__ import annotations
 import argparse
 import json
 import resource
+import subprocess
+import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-from estimator.cli import main as physfuse
 from estimator.config import load_config
 from estimator.logs import read_log
-from estimator.problem import Settings, build_problem, knot_grid
+from estimator.problem import (
+    KnotModel,
+    Settings,
+    accelerations,
+    build_problem,
+    knot_grid,
+    velocities,
+)
 from estimator.run import estimate, initial_trajectory
-from estimator.smoother import Linearizer
+from estimator.smoother import THREADS
 
 
 def bare_pass_seconds(config, measurements, settings: Settings, knots: int) -> tuple[float, float]:
-    """Seconds per knot of one MuJoCo pass with and without Jacobians (2 threads)."""
+    """Wall seconds per knot of the MuJoCo calls of one pass, with and without Jacobians, on
+    the estimator's THREADS threads."""
     h = float(config.load_model().opt.timestep)
     t_ns = knot_grid(measurements, h)[:knots]
     problem = build_problem(config, measurements, settings, t_ns)
-    qpos = initial_trajectory(problem.model, measurements, t_ns)
-    lin = Linearizer(problem)
-    try:
-        out = []
+    model = problem.model
+    qpos = initial_trajectory(model, measurements, t_ns)
+    v = velocities(model, qpos, h)
+    a = accelerations(v, h)
+    workers = [KnotModel(problem) for _ in range(THREADS)]
+    nv, ns = model.nv, model.nsensordata
+    out = [np.zeros((nv, nv)) for _ in range(3)] + [np.zeros((nv, ns)) for _ in range(3)]
+
+    def work(chunk: range, worker: KnotModel, jac: bool) -> None:
+        outs = [o.copy() for o in out]
+        for k in chunk:
+            worker.evaluate(qpos[k], v[k], a[k])
+            if jac:
+                worker.jacobians(qpos[k], v[k], a[k], *outs)
+
+    interior = range(1, len(t_ns) - 1)
+    chunks = [interior[i::THREADS] for i in range(THREADS)]
+    seconds = []
+    with ThreadPoolExecutor(THREADS) as pool:
         for jac in (True, False):
-            lin.terms(qpos, jac)  # warm up
+            list(pool.map(work, chunks, workers, [jac] * THREADS))  # warm up
             start = time.perf_counter()
             for _ in range(3):
-                lin.terms(qpos, jac)
-            out.append((time.perf_counter() - start) / 3 / (problem.T - 2))
-    finally:
-        lin.close()
-    return out[0], out[1]
+                list(pool.map(work, chunks, workers, [jac] * THREADS))
+            seconds.append((time.perf_counter() - start) / 3 / len(interior))
+    return seconds[0], seconds[1]
 
 
 def main() -> None:
@@ -55,8 +79,11 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     log = args.out / f"humanoid_push_{args.minutes:g}min.mcap"
     config_path = args.out / f"humanoid_push_{args.minutes:g}min.toml"
-    physfuse(
+    subprocess.run(
         [
+            sys.executable,
+            "-m",
+            "estimator.cli",
             "simulate",
             "humanoid_push",
             "--seed",
@@ -68,7 +95,8 @@ def main() -> None:
             "--config-out",
             str(config_path),
             "--quiet",
-        ]
+        ],
+        check=True,
     )
     config = load_config(config_path, extra_sections=("estimator", "simulate"))
     settings = Settings.from_config(config)
