@@ -48,7 +48,9 @@ quantities in the joint's own units, rad or m):
                              gyro_bias_walk [rad/s/√s], accel_bias_walk [m/s²/√s]
     joint_state              position_std, velocity_std, effort_std
     command                  std [actuator ctrl units]
-    wrench                   force_std [N], torque_std [N·m]
+    wrench                   force_std [N], torque_std [N·m], force_bias_std [N],
+                             torque_bias_std [N·m] (the offset's prior), force_bias_walk
+                             [N/√s], torque_bias_walk [N·m/√s]
 
 Each stream is resolved to `elements` (model names, the output column order) and `sources`
 (the matching names in the messages), so the reader handles every kind the same way.
@@ -91,7 +93,14 @@ NOISE_DEFAULTS: Mapping[str, Mapping[str, float]] = {
     },
     "joint_state": {"position_std": 1e-3, "velocity_std": 1e-2, "effort_std": 1e-1},
     "command": {"std": 1e-2},
-    "wrench": {"force_std": 1.0, "torque_std": 0.05},
+    "wrench": {
+        "force_std": 1.0,
+        "torque_std": 0.05,
+        "force_bias_std": 2.0,  # F/T sensors drift off zero: a bias state, like the IMU's
+        "torque_bias_std": 0.1,
+        "force_bias_walk": 0.01,
+        "torque_bias_walk": 5e-4,
+    },
 }
 
 _COMMON_KEYS = ("type", "topic", "stamp", "time_offset_ns", "required", "noise")

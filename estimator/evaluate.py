@@ -3,9 +3,10 @@
 Pure functions on arrays (and on `StateTopics`, the arrays of one prefix of the shared topic
 layout); `estimator/evaluate_cmd.py` reads the files and prints the tables.
 
-Conventions: an estimate sample at t is compared with the truth sample nearest in time (the
-truth may be sparser: `--ground-truth-every`); `TRIM_KNOTS` knots at each end of the estimate
-are left out (no dynamics factor reaches the outermost knots). RMSE of vectors is
+Conventions: an estimate sample at t is compared with the truth interpolated linearly to t
+between the two truth samples around it (the truth may be sparser: `--ground-truth-every`);
+`TRIM_KNOTS` knots at each end of the estimate are left out (no dynamics factor reaches the
+outermost knots). RMSE of vectors is
 sqrt(mean_n ‖e_n‖²); of scalars (joint angles) sqrt(mean e²) over every entry.
 """
 
@@ -17,7 +18,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from estimator.truth import Series, StateTopics
+from estimator.truth import Series, StateTopics, at_times
 
 TRIM_KNOTS = 2
 CONTACT_WEIGHT_FRACTION = 0.01  # "in contact": net contact force above 1% of the weight
@@ -61,17 +62,6 @@ def rotation_angles(quat_wxyz: np.ndarray, quat_true_wxyz: np.ndarray) -> np.nda
     w = np.sum(q * g, axis=1)  # Re(g* ⊗ q)
     v = g[:, :1] * q[:, 1:] - q[:, :1] * g[:, 1:] - np.cross(g[:, 1:], q[:, 1:])  # Im(g* ⊗ q)
     return 2.0 * np.arctan2(np.linalg.norm(v, axis=1), np.abs(w))
-
-
-def nearest(t_ref_ns: np.ndarray, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Index into the sorted t_ref (M,) of the time nearest each of t_ns (N,), and |Δt| ns."""
-    i = np.searchsorted(t_ref_ns, t_ns).clip(1, max(len(t_ref_ns) - 1, 1))
-    if len(t_ref_ns) == 1:
-        i = np.zeros(len(t_ns), dtype=int)
-    else:
-        earlier = np.abs(t_ref_ns[i - 1] - t_ns) <= np.abs(t_ref_ns[i] - t_ns)
-        i = i - earlier.astype(int)
-    return i, np.abs(t_ref_ns[i] - t_ns)
 
 
 def in_contact(force: np.ndarray, threshold: float) -> np.ndarray:
@@ -130,17 +120,19 @@ def within(t_ns: np.ndarray, intervals: np.ndarray) -> np.ndarray:
 def _matched(
     est: Series, truth: Series, trim: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """(t_ns, estimate values, truth values) at the estimate's samples (trimmed) that have a
-    truth sample within one truth period; None if none has."""
+    """(t_ns, estimate values, truth values) at the estimate's samples (trimmed) that lie
+    between two truth samples at most 1.5 truth periods apart, the truth interpolated linearly
+    there (`truth.at_times`); None if none does."""
     t, values = est.t_ns[trim : len(est.t_ns) - trim], est.values[trim : len(est.t_ns) - trim]
-    if not len(t) or not len(truth.t_ns):
+    if not len(t) or len(truth.t_ns) < 2:
         return None
-    period = float(np.median(np.diff(truth.t_ns))) if len(truth.t_ns) > 1 else 0.0
-    i, dt = nearest(truth.t_ns, t)
-    ok = dt <= period
+    period = float(np.median(np.diff(truth.t_ns)))
+    i = np.searchsorted(truth.t_ns, t).clip(1, len(truth.t_ns) - 1)
+    inside = (t >= truth.t_ns[0]) & (t <= truth.t_ns[-1])
+    ok = inside & (truth.t_ns[i] - truth.t_ns[i - 1] <= 1.5 * period)
     if not ok.any():
         return None
-    return t[ok], values[ok], truth.values[i[ok]]
+    return t[ok], values[ok], at_times(truth.t_ns, truth.values, t[ok])
 
 
 def compare_states(

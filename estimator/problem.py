@@ -62,7 +62,13 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
         0.0,
         "σ of a constant-acceleration prior on (a_{k+1} − a_k)/h, units/s³ (0: none)",
     ),
-    "huber_k": (2.0, "Huber threshold on a whitened residual block"),
+    "huber_k": (2.0, "robust kernel threshold k on a whitened residual block's norm"),
+    "physics_kernel": ("cauchy", "robust kernel of the physics factors: huber | cauchy"),
+    "sensor_kernel": ("huber", "robust kernel of position- and velocity-stage sensors"),
+    "acceleration_sensor_kernel": (
+        "cauchy",
+        "robust kernel of acceleration-stage sensors (accelerometer, force/torque)",
+    ),
     "window_s": (4.0, "length of one smoothing window, s"),
     "overlap_s": (0.5, "overlap of consecutive windows, s"),
     "max_iterations": (30, "Levenberg–Marquardt iterations per window"),
@@ -75,6 +81,9 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
 CHOICES: Mapping[str, tuple[str, ...]] = {
     "method": ("physics", "kinematic", "ekf", "ukf", "raw"),
     "path": ("native", "reference"),
+    "physics_kernel": ("huber", "cauchy"),
+    "sensor_kernel": ("huber", "cauchy"),
+    "acceleration_sensor_kernel": ("huber", "cauchy"),
 }
 # the kinematic baseline: no physics factors; a constant-acceleration (white jerk) prior with
 # σ_j of fast legged-robot motion, set once (not fitted to any recording)
@@ -91,6 +100,9 @@ class Settings:
     accel_prior_std: float = 200.0
     jerk_prior_std: float = 0.0
     huber_k: float = 2.0
+    physics_kernel: str = "cauchy"
+    sensor_kernel: str = "huber"
+    acceleration_sensor_kernel: str = "cauchy"
     window_s: float = 4.0
     overlap_s: float = 0.5
     max_iterations: int = 30
@@ -142,7 +154,9 @@ class SensorBlock:
     kind:    "vector" (p − m), "quat" (Log(m⁻¹ p), 4 sensordata rows → 3 residual rows)
     values:  (T, n_meas) the measurement at each knot (NaN: no measurement)
     sigma:   (n_res,) per residual row
-    bias:    slice of the bias vector added to the prediction (IMU), or None
+    bias:    slice of the bias vector added to the prediction (IMU, F/T), or None
+    stage:   "pos", "vel" or "acc": what the sensor depends on (an acceleration-stage sensor
+             sees a knot's position through a_k, 1/h² strongly)
     """
 
     stream: str
@@ -151,6 +165,7 @@ class SensorBlock:
     values: np.ndarray
     sigma: np.ndarray
     bias: slice | None = None
+    stage: str = "pos"
 
 
 @dataclass
@@ -164,9 +179,11 @@ class Problem:
     qfrc_known: np.ndarray  # (T, nv), NaN where no force is known
     physics_sigma: np.ndarray  # (T, nv), inf where the dof is left free
     settings: Settings
-    nb: int  # bias dimensions per knot (6 per IMU stream)
+    nb: int  # bias dimensions per knot (6 per IMU and per force/torque stream)
     imu_streams: list[str] = field(default_factory=list)
     bias_walk: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (nb,) per √s
+    bias_prior: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (nb,) σ of b_0
+    bias_of: dict[str, slice] = field(default_factory=dict)  # stream → its 6 bias dims
 
     @property
     def T(self) -> int:
@@ -258,7 +275,9 @@ def build_problem(
         t_ns = knot_grid(measurements, h)
     blocks: list[SensorBlock] = []
     imu_streams: list[str] = []
-    walks: list[np.ndarray] = []
+    walks: list[np.ndarray] = []  # per bias dim: random walk σ per √s, σ of b_0
+    priors: list[np.ndarray] = []
+    bias_of: dict[str, slice] = {}
     nb = 0
     for name, stream in config.streams.items():
         m = measurements.get(name)
@@ -309,7 +328,13 @@ def build_problem(
             bias = slice(nb, nb + 6)
             blocks.append(
                 SensorBlock(
-                    name, "vector", adr[0], accel, np.full(3, noise["accel_std"]), slice(nb, nb + 3)
+                    name,
+                    "vector",
+                    adr[0],
+                    accel,
+                    np.full(3, noise["accel_std"]),
+                    slice(nb, nb + 3),
+                    "acc",
                 )
             )
             blocks.append(
@@ -320,6 +345,7 @@ def build_problem(
                     gyro,
                     np.full(3, noise["gyro_std"]),
                     slice(nb + 3, nb + 6),
+                    "vel",
                 )
             )
             # averaging n samples per knot: σ/√n (per knot and row, applied at whitening)
@@ -329,6 +355,10 @@ def build_problem(
             walks.append(
                 np.r_[np.full(3, noise["accel_bias_walk"]), np.full(3, noise["gyro_bias_walk"])]
             )
+            priors.append(
+                np.r_[np.full(3, settings.bias_prior_accel), np.full(3, settings.bias_prior_gyro)]
+            )
+            bias_of[name] = bias
             nb = bias.stop
         elif stream.kind == "joint_state":
             values = interpolated_at_knots(m, t_ns)
@@ -345,27 +375,63 @@ def build_problem(
                 )
         elif stream.kind == "wrench":
             values, _ = averaged_at_knots(m, t_ns, "acc")
+            force, torque = values[:, 0, :3], values[:, 0, 3:6]
+            bias = slice(nb, nb + 6)
             blocks.append(
                 SensorBlock(
-                    name, "vector", adr[0], values[:, 0, :3], np.full(3, noise["force_std"])
+                    name,
+                    "vector",
+                    adr[0],
+                    force,
+                    np.full(3, noise["force_std"]),
+                    slice(nb, nb + 3),
+                    "acc",
                 )
             )
             blocks.append(
                 SensorBlock(
-                    name, "vector", adr[1], values[:, 0, 3:6], np.full(3, noise["torque_std"])
+                    name,
+                    "vector",
+                    adr[1],
+                    torque,
+                    np.full(3, noise["torque_std"]),
+                    slice(nb + 3, nb + 6),
+                    "acc",
                 )
             )
+            walks.append(
+                np.r_[np.full(3, noise["force_bias_walk"]), np.full(3, noise["torque_bias_walk"])]
+            )
+            priors.append(
+                np.r_[np.full(3, noise["force_bias_std"]), np.full(3, noise["torque_bias_std"])]
+            )
+            bias_of[name] = bias
+            nb = bias.stop
     qfrc_known, sigma = _known_forces(model, config, measurements, t_ns, settings)
     if settings.method == "kinematic":
         sigma[:] = np.inf  # no physics factor anywhere
     bias_walk = np.concatenate(walks) if walks else np.zeros(0)
-    return Problem(model, h, t_ns, blocks, qfrc_known, sigma, settings, nb, imu_streams, bias_walk)
+    bias_prior = np.concatenate(priors) if priors else np.zeros(0)
+    return Problem(
+        model,
+        h,
+        t_ns,
+        blocks,
+        qfrc_known,
+        sigma,
+        settings,
+        nb,
+        imu_streams,
+        bias_walk,
+        bias_prior,
+        bias_of,
+    )
 
 
 def _scaled(block: SensorBlock, factor: np.ndarray) -> SensorBlock:
     """A block whose σ is multiplied per knot (T,) or per knot and row (T, n): sigma (T, n)."""
     sigma = factor.reshape(len(factor), -1) * block.sigma
-    return SensorBlock(block.stream, block.kind, block.rows, block.values, sigma, block.bias)
+    return replace(block, sigma=sigma)
 
 
 def _sensor_rows(model: mujoco.MjModel, name: str) -> np.ndarray:

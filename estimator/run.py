@@ -349,7 +349,7 @@ def collect_estimate(
         inv = dyn.inverse(qpos[k], v[k], a[k])
         qfrc[k] = inv.qfrc_inverse
         constraints.append(inv.constraints)
-    imu_bias = {name: bias[:, 6 * i : 6 * i + 6] for i, name in enumerate(problem.imu_streams)}
+    imu_bias = {name: bias[:, problem.bias_of[name]] for name in problem.imu_streams}
     residuals, cost_by_type = residuals_by_type(problem, qpos, bias)
     return Estimate(
         t_ns=problem.t_ns,
@@ -416,8 +416,9 @@ def consistency_warnings(est: Estimate) -> list[str]:
             continue
         k = int(np.nanargmax(magnitude[:, j]))
         t = (est.t_ns[k] - est.t_ns[0]) / 1e9
+        what = "the motion (physics factors)" if name == "physics" else f"the {name} measurements"
         out.append(
-            f"the model does not explain the {name} measurements: median residual "
+            f"the model does not explain {what}: median residual "
             f"{median:.1f}σ on row {j} (largest {r[k, j]:+.0f}σ at {t:.2f} s) — wrong model, "
             "unmodeled contact or force, or a faulty sensor or noise setting?"
         )

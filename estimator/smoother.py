@@ -93,6 +93,15 @@ def huber(norm: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
     return loss, weight
 
 
+def cauchy(norm: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
+    """GTSAM's mEstimator.Cauchy, vectorized: ρ(n) = ½k² log(1 + n²/k²), w(n) = k²/(k² + n²)
+    (redescending: a residual far beyond k stops pulling)."""
+    return 0.5 * k**2 * np.log1p((norm / k) ** 2), k**2 / (k**2 + norm**2)
+
+
+KERNELS = {"huber": huber, "cauchy": cauchy}
+
+
 class Linearizer:
     """Residuals and their Jacobians over all knots of a problem, vectorized across knots."""
 
@@ -175,10 +184,11 @@ class Linearizer:
         K = p.T - 2
         out: list[Block] = []
 
-        def weighted(block: Block, scale: np.ndarray | float = 1.0) -> Block:
-            """Huber on the block's norm per knot; the threshold scales with `scale`."""
+        def weighted(block: Block, kernel: str, scale: np.ndarray | float = 1.0) -> Block:
+            """The robust kernel on the block's norm per knot; its threshold scales with
+            `scale`."""
             norm = np.linalg.norm(block.r, axis=1) / scale
-            loss, weight = huber(norm, k_huber)
+            loss, weight = KERNELS[kernel](norm, k_huber)
             block.cost = loss * np.square(scale)
             if robust:
                 root = np.sqrt(weight)
@@ -197,7 +207,8 @@ class Linearizer:
         r = np.nan_to_num((t.u - p.qfrc_known[1:-1]) * w)
         J = t.Ju * w[:, :, None] if t.Ju is not None else None
         physics = Block("physics", r, J, np.zeros(K), known)
-        out.append(weighted(physics, np.sqrt(np.maximum(known.sum(axis=1), 1))))
+        scale = np.sqrt(np.maximum(known.sum(axis=1), 1))
+        out.append(weighted(physics, p.settings.physics_kernel, scale))
         # smoothness prior: a_k / σ_a
         sa = p.settings.accel_prior_std
         r = t.a / sa
@@ -242,7 +253,12 @@ class Linearizer:
                 if M is not None:
                     M[~valid] = 0.0
             rows_valid = np.repeat(valid[:, None], r.shape[1], 1)
-            out.append(weighted(Block(sensor.stream, r, J, np.zeros(K), rows_valid, J_bias)))
+            block = Block(sensor.stream, r, J, np.zeros(K), rows_valid, J_bias)
+            settings = p.settings
+            kernel = settings.sensor_kernel
+            if sensor.stage == "acc":
+                kernel = settings.acceleration_sensor_kernel
+            out.append(weighted(block, kernel))
         return out
 
     def cost(self, qpos: np.ndarray, bias: np.ndarray) -> tuple[float, dict[str, float]]:
@@ -272,31 +288,27 @@ class Linearizer:
             row = rows.stop
         return r, J
 
-    # -- IMU bias: prior on b_0 and random walk ------------------------------------------------
+    # -- sensor biases (IMU, force/torque): prior on b_0 and random walk ---------------------
 
     def bias_rows(self, bias: np.ndarray) -> list[tuple[int, int | None, np.ndarray, np.ndarray]]:
         """(key_a, key_b, residual, σ) for the bias prior (key_b None) and each walk step."""
         p = self.problem
         if not p.nb:
             return []
-        s = p.settings
-        prior_sigma = np.tile(
-            np.r_[np.full(3, s.bias_prior_accel), np.full(3, s.bias_prior_gyro)], p.nb // 6
-        )
         walk = p.bias_walk * np.sqrt(p.h)
         out: list[tuple[int, int | None, np.ndarray, np.ndarray]] = [
-            (0, None, bias[0], prior_sigma)
+            (0, None, bias[0], p.bias_prior)
         ]
         for k in range(p.T - 1):
             out.append((k, k + 1, bias[k + 1] - bias[k], walk))
         return out
 
     def bias_cost(self, bias: np.ndarray) -> dict[str, float]:
-        """{"imu_bias": cost of the bias prior and random walk} ({} without an IMU)."""
+        """{"bias": cost of the bias prior and random walk} ({} without biased sensors)."""
         rows = self.bias_rows(bias)
         if not rows:
             return {}
-        return {"imu_bias": float(sum(0.5 * np.sum((r / s) ** 2) for _, _, r, s in rows))}
+        return {"bias": float(sum(0.5 * np.sum((r / s) ** 2) for _, _, r, s in rows))}
 
     def close(self) -> None:
         self.pool.shutdown()
@@ -333,12 +345,8 @@ class BandedSystem:
                 lower[a - b - 1][b : b + n] += G[:n, a, :, b]
         if p.nb:  # bias prior on b_0, random walk (b_{k+1} − b_k)/(σ_walk √h)
             b_ = slice(nv, nz)
-            s = p.settings
-            prior = np.tile(
-                np.r_[np.full(3, s.bias_prior_accel), np.full(3, s.bias_prior_gyro)], p.nb // 6
-            )
-            diag[0, b_, b_] += np.diag(prior**-2.0)
-            g[0, b_] += bias[0] / prior**2
+            diag[0, b_, b_] += np.diag(p.bias_prior**-2.0)
+            g[0, b_] += bias[0] / p.bias_prior**2
             W = np.diag((p.bias_walk * np.sqrt(p.h)) ** -2.0)
             step = (bias[1:] - bias[:-1]) @ W
             diag[:-1, b_, b_] += W

@@ -186,11 +186,16 @@ def read_ground_truth(path: str | Path, model: mujoco.MjModel) -> tuple[np.ndarr
     return read_state_topics(path, PREFIX).qpos(model)
 
 
-def at_times(t_truth: np.ndarray, q_truth: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
-    """(T, nq) the ground-truth state nearest in time to each of t_ns."""
-    nearest = np.searchsorted(t_truth, t_ns).clip(1, len(t_truth) - 1)
-    earlier = np.abs(t_truth[nearest - 1] - t_ns) <= np.abs(t_truth[nearest] - t_ns)
-    return q_truth[nearest - earlier.astype(int)]
+def at_times(t_truth: np.ndarray, values: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
+    """(T, n) the truth (N, n) at each of t_ns: linear interpolation between the samples that
+    bracket it, held beyond the ends. (Quaternion columns come out a hair off unit norm:
+    normalize them.)"""
+    if len(t_truth) == 1:
+        return np.repeat(values, len(t_ns), axis=0)
+    i = np.searchsorted(t_truth, t_ns).clip(1, len(t_truth) - 1)
+    t0, t1 = t_truth[i - 1], t_truth[i]
+    w = ((t_ns - t0) / np.maximum(t1 - t0, 1)).clip(0.0, 1.0)[:, None]
+    return (1.0 - w) * values[i - 1] + w * values[i]
 
 
 def trajectory_errors(
@@ -215,9 +220,10 @@ def trajectory_errors(
         dp = q[:, a : a + 3] - g[:, a : a + 3]
         out[f"{body}_pos_mm"] = float(1e3 * np.sqrt(np.mean(np.sum(dp**2, axis=1))))
         angle = np.zeros(len(q))
+        g_quat = g[:, a + 3 : a + 7] / np.linalg.norm(g[:, a + 3 : a + 7], axis=1, keepdims=True)
         for k in range(len(q)):
             e = np.zeros(3)
-            mujoco.mju_subQuat(e, q[k, a + 3 : a + 7], g[k, a + 3 : a + 7])
+            mujoco.mju_subQuat(e, q[k, a + 3 : a + 7], g_quat[k])
             angle[k] = np.linalg.norm(e)
         out[f"{body}_rot_deg"] = float(np.degrees(np.sqrt(np.mean(angle**2))))
     return out

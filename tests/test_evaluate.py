@@ -92,7 +92,7 @@ def _states(t_ns, *, pos, quat, joints, force, bias) -> StateTopics:
 
 def test_compare_states_recovers_known_offsets_against_a_sparser_truth():
     """The estimate every 10 ms, the truth every 40 ms (ground truth every 4th step): each
-    knot is compared with its nearest truth sample; the offsets come back as the errors."""
+    knot is compared with the truth interpolated to it; the offsets come back as the errors."""
     model = load_model("humanoid")
     weight = float(np.sum(model.body_mass) * 9.81)
     t_est = np.arange(0, 2000, 10) * MS
@@ -126,12 +126,12 @@ def test_compare_states_recovers_known_offsets_against_a_sparser_truth():
     assert s["orientation_deg"] == pytest.approx(0.5)
     assert s["joint_deg"] == pytest.approx(0.2)
     assert s["linear_velocity_mps"] == 0.0 and s["joint_velocity_dps"] == 0.0
-    # stance [500, 1500) ms: the truth's samples in it are 520 … 1480 ms; the knot at 500 ms
-    # is matched to 480 ms (a tie goes to the earlier), the knot at 1500 ms to 1480 ms: one
-    # false positive and one false negative in 100 knots in contact
+    # stance [500, 1500) ms: the truth's samples in it are 520 … 1480 ms; interpolated, the
+    # truth is in contact on (480, 1520) ms, the knots 490 … 1510 (103), the estimate on the
+    # 100 knots 500 … 1490: no false positive, three false negatives
     in_contact = metrics["contacts"]["left_foot"]
-    assert in_contact["precision"] == pytest.approx(0.99)
-    assert in_contact["recall"] == pytest.approx(0.99)
+    assert in_contact["precision"] == pytest.approx(1.0)
+    assert in_contact["recall"] == pytest.approx(100 / 103)
     assert s["contact_precision"] == in_contact["precision"]
     assert 4.5 < s["contact_force_N"] < weight / 2
     assert s["contact_force_pct_weight"] == pytest.approx(100 * s["contact_force_N"] / weight)

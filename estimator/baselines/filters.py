@@ -401,10 +401,7 @@ class _Filter:
         self.rejected: dict[str, int] = {}  # stream → knots with a block rejected
         self.rejected_since: dict[str, int] = {}  # stream → first knot of its rejections
         self.reference = qpos0[0].copy()
-        s = problem.settings
-        bias_std = np.tile(
-            np.r_[np.full(3, s.bias_prior_accel), np.full(3, s.bias_prior_gyro)], nb // 6
-        )
+        bias_std = problem.bias_prior
         self.ekf = _ManifoldEKF(self.n, 1)
         self.ekf.x = np.zeros(self.n)
         if len(qpos0) > 1:  # v_0 from the first two raw configurations
