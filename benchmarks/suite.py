@@ -237,7 +237,9 @@ def run_suite(
         simulated = dict(
             zip(
                 pairs,
-                pool.map(lambda p: simulate_log(*p, seed, duration_s, logs, timeout_s), pairs),
+                pool.map(
+                    lambda p: simulate_log(p[0], p[1], seed, duration_s, logs, timeout_s), pairs
+                ),
                 strict=True,
             )
         )
@@ -345,8 +347,11 @@ def check_beats_baselines(runs: Sequence[Run]) -> list[Check]:
                 items.append(_item(metric, "N/A", f"physics failed: {physics.error}"))
                 continue
             p = physics.metrics.get(metric)
-            values = {b.method: b.metrics.get(metric) for b in baselines if not b.error}
-            values = {m: v for m, v in values.items() if v is not None}
+            values: dict[str, float] = {
+                b.method: v
+                for b in baselines
+                if not b.error and (v := b.metrics.get(metric)) is not None
+            }
             failed = [b.method for b in baselines if b.error]
             if p is None:
                 if values:
@@ -480,7 +485,8 @@ def plot(runs: Sequence[Run], out: Path) -> list[Path]:
     conditions = list(dict.fromkeys(r.condition for r in runs))
     methods = list(dict.fromkeys(r.method for r in runs))
     by_key = {(r.scenario, r.condition, r.method): r for r in runs}
-    colors = dict(zip(methods, plt.get_cmap("tab10").colors, strict=False))
+    palette = plt.get_cmap("tab10")
+    colors = {m: palette(i % 10) for i, m in enumerate(methods)}
     width = 0.8 / len(methods)
     paths = []
     for metric, (label, lower_is_better) in METRICS.items():
