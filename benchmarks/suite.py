@@ -118,6 +118,8 @@ def call(argv: Sequence[str], timeout_s: float, transcript: Path) -> str | None:
         )
     except subprocess.TimeoutExpired:
         return f"timed out after {timeout_s:g} s: physfuse {argv[0]}"
+    except OSError as err:
+        return f"cannot run physfuse {argv[0]}: {err}"
     with transcript.open("a") as f:
         f.write(f"$ physfuse {' '.join(argv)}\n{proc.stdout}{proc.stderr}\n")
     if proc.returncode == 0:
