@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Mapping
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,13 @@ from estimator.estimate import Estimate
 from estimator.logs import read_log
 from estimator.problem import SETTINGS, Settings
 from estimator.run import Summary, estimate, initial_trajectory
-from estimator.simulate.writer import Ros2Writer, StateLayout, state_data, write_state
+from estimator.simulate.writer import (
+    Ros2Writer,
+    StateLayout,
+    imu_bias_message,
+    state_data,
+    write_state,
+)
 from estimator.truth import at_times, read_ground_truth, trajectory_errors
 
 
@@ -69,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise PhysfuseError(f"--out {out}: cannot create the directory ({err.strerror})") from err
-    write_estimate_mcap(out / "estimate.mcap", est, model)
+    imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
+    write_estimate_mcap(out / "estimate.mcap", est, model, imu_sites)
     accuracy = _accuracy(args.log, model, log.measurements, est)
     report = _report(summary, settings, accuracy, out)
     (out / "summary.json").write_text(json.dumps(report, indent=2) + "\n")
@@ -84,13 +92,19 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def write_estimate_mcap(path: Path, est: Estimate, model: mujoco.MjModel) -> int:
-    """The estimate in the `/estimate/...` layout, one state per knot; returns the count."""
+def write_estimate_mcap(
+    path: Path, est: Estimate, model: mujoco.MjModel, imu_sites: Mapping[str, str] | None = None
+) -> int:
+    """The estimate in the `/estimate/...` layout, one state per knot, and each IMU stream's
+    bias (`/estimate/imu_bias/<stream>`, frame: its site from `imu_sites`, stream → site);
+    metadata `physfuse.estimate` names the model. Returns the message count."""
     layout = StateLayout.of(model)
     data = mujoco.MjData(model)
     free = [j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
+    sites = imu_sites or {}
     count = 0
     with Ros2Writer(path) as writer:
+        writer.add_metadata("physfuse.estimate", {"model": est.model_name, "h": repr(est.h)})
         for k in range(est.T):
             state_data(model, est.qpos[k], est.qvel[k], data)
             covariance = {}
@@ -109,6 +123,11 @@ def write_estimate_mcap(path: Path, est: Estimate, model: mujoco.MjModel) -> int
                 pose_covariance=covariance,
                 layout=layout,
             )
+            for stream, bias in est.imu_bias.items():
+                t_ns = int(est.t_ns[k])
+                m = imu_bias_message("/estimate", stream, t_ns, sites.get(stream, ""), bias[k])
+                writer.write(m.topic, m.msg_type, m.fields, m.log_time_ns)
+                count += 1
     return count
 
 

@@ -17,8 +17,8 @@ Factors, all on (z_{k−1}, z_k, z_{k+1}) for the interior knots k = 1 … T−2
     bias      (b_{k+1} − b_k) / (σ_walk √h)               random walk
 
 Sensor samples are brought to the knot times (linear interpolation; IMU samples averaged
-over the knot's interval, σ/√n). Rows are whitened here, robust (Huber) weights come from
-GTSAM's mEstimator, and each knot's rows form one GTSAM JacobianFactor.
+over the knot's interval, σ/√n). Rows are whitened here; `estimator.smoother` weights them
+robustly (Huber) and solves.
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-import gtsam
 import mujoco
 import numpy as np
 
@@ -490,20 +489,20 @@ class _RotationDofs:
 def difference_jacobians(
     model: mujoco.MjModel, rotations: _RotationDofs, q1: np.ndarray, q2: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """∂(q2 ⊖ q1)/∂x1 and ∂(q2 ⊖ q1)/∂x2 for right perturbations q ⊕ x, each (nv, nv).
+    """∂(q2 ⊖ q1)/∂x1 and ∂(q2 ⊖ q1)/∂x2 for right perturbations q ⊕ x, each (N, nv, nv) for
+    N pairs q1, q2 (N, nq).
 
     Identity on vector dofs; on a rotation φ = Log(R1ᵀ R2): ∂φ/∂x2 = J_r⁻¹(φ),
-    ∂φ/∂x1 = −J_r⁻¹(φ) Exp(φ)ᵀ = −J_l⁻¹(φ).
+    ∂φ/∂x1 = −J_r⁻¹(φ) Exp(φ)ᵀ = −J_l⁻¹(φ) = −J_r⁻¹(−φ).
     """
-    nv = model.nv
-    d1, d2 = -np.eye(nv), np.eye(nv)
+    N, nv = len(q1), model.nv
+    d1 = np.tile(-np.eye(nv), (N, 1, 1))
+    d2 = np.tile(np.eye(nv), (N, 1, 1))
     for qadr, dadr in rotations.quat_dofs:
-        phi = np.zeros(3)
-        mujoco.mju_subQuat(phi, q2[qadr : qadr + 4], q1[qadr : qadr + 4])
-        jr_inv = gtsam.Rot3.LogmapDerivative(phi)
-        exp_phi = gtsam.Rot3.Expmap(phi).matrix()
-        d2[dadr : dadr + 3, dadr : dadr + 3] = jr_inv
-        d1[dadr : dadr + 3, dadr : dadr + 3] = -jr_inv @ exp_phi.T
+        phi = quat_log_between(q1[:, qadr : qadr + 4], q2[:, qadr : qadr + 4])
+        rot = slice(dadr, dadr + 3)
+        d2[:, rot, rot] = _jr_inverse(phi)
+        d1[:, rot, rot] = -_jr_inverse(-phi)
     return d1, d2
 
 
@@ -536,19 +535,27 @@ class KnotModel:
             u = self.reference.inverse(q, v, a).qfrc_inverse
         return u, d.sensordata.copy()
 
-    def jacobians(
-        self, q: np.ndarray, v: np.ndarray, a: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """mjd_inverseFD at one knot: ∂u/∂(q, v, a) (nv, nv) and ∂s/∂(q, v, a) (ns, nv)."""
+    def jacobians(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, *out: np.ndarray) -> None:
+        """mjd_inverseFD at one knot into out = (DfDq, DfDv, DfDa) (nv, nv) and (DsDq, DsDv,
+        DsDa) (nv, ns), in MuJoCo's transposed layout (row i: the derivative by x_i)."""
         m, d = self.model, self.data
-        nv, ns = m.nv, m.nsensordata
         d.qpos[:], d.qvel[:], d.qacc[:] = q, v, a
-        DfDq, DfDv, DfDa = (np.zeros((nv, nv)) for _ in range(3))
-        DsDq, DsDv, DsDa = (np.zeros((nv, ns)) for _ in range(3))
-        mujoco.mjd_inverseFD(
-            m, d, self.problem.settings.fd_eps, False, DfDq, DfDv, DfDa, DsDq, DsDv, DsDa, None
-        )
-        return DfDq.T, DfDv.T, DfDa.T, DsDq.T, DsDv.T, DsDa.T
+        mujoco.mjd_inverseFD(m, d, self.problem.settings.fd_eps, False, *out, None)
+
+
+def quat_log_between(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    """φ = Log(q1⁻¹ ⊗ q2) (K, 3) of unit quaternions (K, 4), the short way round (as
+    mju_subQuat(φ, q2, q1))."""
+    w1, v1 = q1[:, 0], -q1[:, 1:]
+    w2, v2 = q2[:, 0], q2[:, 1:]
+    w = w1 * w2 - np.sum(v1 * v2, axis=1)
+    v = w1[:, None] * v2 + w2[:, None] * v1 + np.cross(v1, v2)
+    sign = np.where(w < 0, -1.0, 1.0)
+    w, v = w * sign, v * sign[:, None]
+    s = np.linalg.norm(v, axis=1)
+    theta = 2.0 * np.arctan2(s, w)
+    scale = np.where(s > 1e-12, theta / np.where(s > 1e-12, s, 1.0), 2.0 / np.maximum(w, 1e-300))
+    return v * scale[:, None]
 
 
 def quat_errors(pred: np.ndarray, meas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -557,16 +564,8 @@ def quat_errors(pred: np.ndarray, meas: np.ndarray) -> tuple[np.ndarray, np.ndar
     pred ⊗ Exp(ξ) ≈ pred + dq gives ξ = 2 Im(pred* ⊗ dq); then de = J_r⁻¹(e) ξ, with
     J_r⁻¹(φ) = I + ½[φ]× + (1/θ² − (1 + cos θ)/(2θ sin θ)) [φ]×², θ = ‖φ‖.
     """
-    w1, v1 = meas[:, 0], -meas[:, 1:]  # meas* (unit quaternions)
-    w2, v2 = pred[:, 0], pred[:, 1:]
-    w = w1 * w2 - np.sum(v1 * v2, axis=1)
-    v = w1[:, None] * v2 + w2[:, None] * v1 + np.cross(v1, v2)
-    sign = np.where(w < 0, -1.0, 1.0)  # the short way round
-    w, v = w * sign, v * sign[:, None]
-    s = np.linalg.norm(v, axis=1)
-    theta = 2.0 * np.arctan2(s, w)
-    scale = np.where(s > 1e-12, theta / np.where(s > 1e-12, s, 1.0), 2.0 / np.maximum(w, 1e-300))
-    e = v * scale[:, None]
+    e = quat_log_between(meas, pred)
+    w2 = pred[:, 0]
     x, y, z = pred[:, 1], pred[:, 2], pred[:, 3]
     G = np.stack(
         [  # Im(q* ⊗ p) as a 3×4 matrix of p = (pw, px, py, pz)

@@ -10,6 +10,7 @@ from typing import Any
 
 import mujoco
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from estimator.config import Config
 from estimator.estimate import Estimate
@@ -57,6 +58,18 @@ def estimate(
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[Estimate, Summary]:
     """Smooth the whole log; `progress(done, total)` is called after each window."""
+    # MuJoCo runs on THREADS threads; the small BLAS calls between its passes are fastest on
+    # one (measured: a multithreaded OpenBLAS spin-waits 10× slower on a busy machine)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _estimate(config, measurements, settings, progress)
+
+
+def _estimate(
+    config: Config,
+    measurements: Mapping[str, Measurement],
+    settings: Settings,
+    progress: Callable[[int, int], None] | None,
+) -> tuple[Estimate, Summary]:
     start = time.perf_counter()
     compiled = model_with_sensors(config)
     model = compiled[0]
@@ -330,11 +343,14 @@ def residuals_by_type(
         blocks = lin.blocks(lin.terms(qpos, False), bias, robust=False)
     finally:
         lin.close()
+    parts: dict[str, list[np.ndarray]] = {}
+    for block in blocks:  # a pose stream's position and rotation rows together
+        parts.setdefault(block.name, []).append(np.where(block.valid, block.r, np.nan))
     out = {}
-    for block in blocks:
-        r = np.full((problem.T, block.r.shape[1]), np.nan)
-        r[1:-1] = np.where(block.valid, block.r, np.nan)
-        out[block.name] = r
+    for name, rows in parts.items():
+        r = np.full((problem.T, sum(p.shape[1] for p in rows)), np.nan)
+        r[1:-1] = np.concatenate(rows, axis=1)
+        out[name] = r
     return out
 
 

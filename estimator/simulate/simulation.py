@@ -13,7 +13,8 @@
    native analytic inverse of (q_k, v_k, (v_{k+1} − v_k)/h) on the true model — its
    qfrc_inverse is the joints' effort, its impulses the contacts and contact wrenches
    (`writer.write_state` layout under `/ground_truth`). Its time is the true time; so is its
-   log_time.
+   log_time. Each IMU's true biases go to `/ground_truth/imu_bias/<sensor name>` at its
+   sample times.
 4. Sensors sample the trajectory (`sensors.py`); all messages are written in receive-time
    order, like a recorder, with metadata records `physfuse.simulation`,
    `physfuse.mismatch`, `physfuse.sensors` and `physfuse.ground_truth` (and, under a
@@ -39,11 +40,12 @@ from estimator.simulate.controllers import Push, apply_pushes
 from estimator.simulate.errors import SimulationError
 from estimator.simulate.mismatch import Mismatch, MismatchRecord
 from estimator.simulate.scenarios import Controller, Scenario, get_scenario
-from estimator.simulate.sensors import NS, Trajectory
+from estimator.simulate.sensors import NS, Imu, Trajectory
 from estimator.simulate.writer import (
     Message,
     Ros2Writer,
     StateLayout,
+    imu_bias_message,
     state_data,
     state_messages,
 )
@@ -67,6 +69,10 @@ GROUND_TRUTH_DEFINITIONS = {
     "torque of its contacts over step k (impulse / h), in the body frame, about the body origin",
     "contacts": "physfuse_msgs/ContactArray: every contact of step k from the same inverse "
     "(impulse in the contact frame, force = impulse / h, Algorithm 5 branch)",
+    "imu_bias": "geometry_msgs/AccelStamped per IMU (topic .../imu_bias/<sensor name>), at the "
+    "IMU's true sample times: accel.linear = accelerometer bias [m/s^2], accel.angular = gyro "
+    "bias [rad/s], in the frame of the IMU's model site (header.frame_id; the sensor axes "
+    "turned by quat_site_sensor, as the estimator reads the IMU)",
 }
 
 
@@ -144,6 +150,8 @@ def simulate(
         output = sensor.sample(trajectory, rng)
         messages.extend(output.messages)
         truths[sensor.name] = output.truth
+        if isinstance(sensor, Imu):
+            messages.extend(_imu_bias_messages(sensor, output.truth, trajectory.t0_ns))
 
     order = sorted(range(len(messages)), key=lambda i: messages[i].log_time_ns)
     topics = {m.topic: m.msg_type for m in messages}
@@ -259,6 +267,18 @@ def _ground_truth(
             )
         )
     return messages
+
+
+def _imu_bias_messages(imu: Imu, truth: dict[str, Any], t0_ns: int) -> list[Message]:
+    """`/ground_truth/imu_bias/<name>`: the true biases at each sample, in the site frame."""
+    site_from_sensor = Rotation.from_quat(imu.noise.quat_site_sensor, scalar_first=True)
+    bias = np.hstack(
+        [site_from_sensor.apply(truth["accel_bias"]), site_from_sensor.apply(truth["gyro_bias"])]
+    )
+    return [
+        imu_bias_message(GROUND_TRUTH, imu.name, t0_ns + int(t), imu.site, bias[j])
+        for j, t in enumerate(truth["t_ns"])
+    ]
 
 
 def _metadata(

@@ -14,6 +14,8 @@ ground truth (prefix `/ground_truth`) and the estimator for its estimates (prefi
     {prefix}/joint_states          sensor_msgs/msg/JointState      (hinge and slide joints)
     {prefix}/contact_wrench/<body> geometry_msgs/msg/WrenchStamped body that can touch anything
     {prefix}/contacts              physfuse_msgs/msg/ContactArray  (every contact of the step)
+    {prefix}/imu_bias/<imu>        geometry_msgs/msg/AccelStamped  IMU (estimate: stream name;
+                                                                   truth: sensor name)
 
 - Odometry: header.frame_id "world", child_frame_id the body name; pose = the body frame in
   the world; twist = linear velocity of the body origin and angular velocity, both in the
@@ -29,6 +31,10 @@ ground truth (prefix `/ground_truth`) and the estimator for its estimates (prefi
 - ContactArray (`msgs/physfuse_msgs/msg/ContactArray.msg`): per contact the bodies and geoms,
   position, contact frame, impulse and force in the contact frame, condim and Algorithm 5
   branch.
+- AccelStamped (IMU bias): accel.linear = accelerometer bias [m/s²], accel.angular = gyro
+  bias [rad/s], in the frame of the IMU's model site (header.frame_id): the frame in which
+  the estimator compares the IMU with MuJoCo's sensors (measured = true + bias). The
+  simulator writes it at the IMU's sample times, the estimator at its knots.
 """
 
 from __future__ import annotations
@@ -53,6 +59,7 @@ from physics.result import Constraints
 NS = 1_000_000_000
 
 ODOMETRY = "nav_msgs/msg/Odometry"
+ACCEL_STAMPED = "geometry_msgs/msg/AccelStamped"
 # rosbag2's QoS profiles (metadata version 9 spelling): sensor data is best effort, state and
 # commands are reliable; both volatile, default deadline/lifespan/lease ("infinite").
 _INFINITE = "{sec: 9223372036, nsec: 854775807}"
@@ -429,6 +436,16 @@ def state_messages(
     fields = contact_fields(model, constraints, t_ns)
     out.append(Message(f"{prefix}/contacts", CONTACT_ARRAY, log_time, fields))
     return out
+
+
+def imu_bias_message(prefix: str, imu: str, t_ns: int, frame_id: str, bias: np.ndarray) -> Message:
+    """`{prefix}/imu_bias/<imu>` at t_ns: bias (6,) = accelerometer (m/s²) then gyro (rad/s)
+    bias, in the IMU site's frame `frame_id`."""
+    fields = {
+        "header": header(t_ns, frame_id),
+        "accel": {"linear": vector3(bias[:3]), "angular": vector3(bias[3:6])},
+    }
+    return Message(f"{prefix}/imu_bias/{imu}", ACCEL_STAMPED, t_ns, fields)
 
 
 def write_state(

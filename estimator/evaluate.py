@@ -1,0 +1,352 @@
+"""Metrics of an estimate against ground truth, and of predictions of a held-out sensor.
+
+Pure functions on arrays (and on `StateTopics`, the arrays of one prefix of the shared topic
+layout); `estimator/evaluate_cmd.py` reads the files and prints the tables.
+
+Conventions: an estimate sample at t is compared with the truth sample nearest in time (the
+truth may be sparser: `--ground-truth-every`); `TRIM_KNOTS` knots at each end of the estimate
+are left out (no dynamics factor reaches the outermost knots). RMSE of vectors is
+sqrt(mean_n ‖e_n‖²); of scalars (joint angles) sqrt(mean e²) over every entry.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from estimator.truth import Series, StateTopics
+
+TRIM_KNOTS = 2
+CONTACT_WEIGHT_FRACTION = 0.01  # "in contact": net contact force above 1% of the weight
+OCCLUSION_GAP_PERIODS = 2.5  # a mocap gap longer than this many sample periods: occluded
+
+SUMMARY_KEYS = (
+    "position_mm",
+    "orientation_deg",
+    "joint_deg",
+    "linear_velocity_mps",
+    "angular_velocity_dps",
+    "joint_velocity_dps",
+    "contact_force_N",
+    "contact_force_pct_weight",
+    "contact_precision",
+    "contact_recall",
+    "imu_accel_bias_mps2",
+    "imu_gyro_bias_dps",
+    "occluded_position_mm",
+    "occluded_orientation_deg",
+    "occluded_s",
+)
+
+
+# -- elementary metrics ---------------------------------------------------------------------------
+def rmse(errors: np.ndarray) -> float:
+    """sqrt(mean_n ‖e_n‖²) over the rows of errors (N,) or (N, k) that are finite; NaN if none."""
+    e = np.asarray(errors, dtype=float)
+    e = e.reshape(len(e), -1) if e.size else e.reshape(0, 1)
+    ok = np.all(np.isfinite(e), axis=1)
+    if not ok.any():
+        return float("nan")
+    return float(np.sqrt(np.mean(np.sum(e[ok] ** 2, axis=1))))
+
+
+def rotation_angles(quat_wxyz: np.ndarray, quat_true_wxyz: np.ndarray) -> np.ndarray:
+    """(N,) angle [rad] of the rotation between two quaternion sequences (N, 4), the short way:
+    θ = 2 atan2(‖Im(q_true* ⊗ q)‖, |Re(q_true* ⊗ q)|)."""
+    q = quat_wxyz / np.linalg.norm(quat_wxyz, axis=1, keepdims=True)
+    g = quat_true_wxyz / np.linalg.norm(quat_true_wxyz, axis=1, keepdims=True)
+    w = np.sum(q * g, axis=1)  # Re(g* ⊗ q)
+    v = g[:, :1] * q[:, 1:] - q[:, :1] * g[:, 1:] - np.cross(g[:, 1:], q[:, 1:])  # Im(g* ⊗ q)
+    return 2.0 * np.arctan2(np.linalg.norm(v, axis=1), np.abs(w))
+
+
+def nearest(t_ref_ns: np.ndarray, t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index into the sorted t_ref (M,) of the time nearest each of t_ns (N,), and |Δt| ns."""
+    i = np.searchsorted(t_ref_ns, t_ns).clip(1, max(len(t_ref_ns) - 1, 1))
+    if len(t_ref_ns) == 1:
+        i = np.zeros(len(t_ns), dtype=int)
+    else:
+        earlier = np.abs(t_ref_ns[i - 1] - t_ns) <= np.abs(t_ref_ns[i] - t_ns)
+        i = i - earlier.astype(int)
+    return i, np.abs(t_ref_ns[i] - t_ns)
+
+
+def in_contact(force: np.ndarray, threshold: float) -> np.ndarray:
+    """(N,) whether the net contact force (N, 3) exceeds the threshold in norm."""
+    return np.linalg.norm(force, axis=1) > threshold
+
+
+def precision_recall(predicted: np.ndarray, actual: np.ndarray) -> tuple[float, float]:
+    """Precision TP/(TP+FP) and recall TP/(TP+FN) of boolean sequences; NaN where undefined
+    (nothing predicted, or nothing to find)."""
+    predicted, actual = np.asarray(predicted, bool), np.asarray(actual, bool)
+    tp = np.sum(predicted & actual)
+    precision = tp / predicted.sum() if predicted.any() else float("nan")
+    recall = tp / actual.sum() if actual.any() else float("nan")
+    return float(precision), float(recall)
+
+
+def gap_intervals(
+    t_ns: np.ndarray, start_ns: int, end_ns: int, max_gap_ns: float | None = None
+) -> np.ndarray:
+    """(n, 2) int64 intervals within [start, end] with no sample for longer than max_gap_ns
+    (default OCCLUSION_GAP_PERIODS median sample periods): between two samples (open), and
+    before the first or after the last sample. No sample at all: the whole span."""
+    t = np.sort(np.asarray(t_ns, dtype=np.int64))
+    t = t[(t >= start_ns) & (t <= end_ns)]
+    if len(t) == 0:
+        return np.array([[start_ns, end_ns]], dtype=np.int64)
+    if max_gap_ns is None:
+        period = float(np.median(np.diff(t))) if len(t) > 1 else float(end_ns - start_ns)
+        max_gap_ns = OCCLUSION_GAP_PERIODS * period
+    edges = np.concatenate([[start_ns], t, [end_ns]])
+    gaps = np.diff(edges) > max_gap_ns
+    return np.stack([edges[:-1][gaps], edges[1:][gaps]], axis=1).astype(np.int64)
+
+
+def intersect_intervals(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n, 2) the pairwise overlaps of two lists of intervals (m, 2) and (k, 2)."""
+    out = []
+    for a0, a1 in a:
+        for b0, b1 in b:
+            lo, hi = max(a0, b0), min(a1, b1)
+            if lo < hi:
+                out.append((lo, hi))
+    return np.array(sorted(out), dtype=np.int64).reshape(-1, 2)
+
+
+def within(t_ns: np.ndarray, intervals: np.ndarray) -> np.ndarray:
+    """(N,) whether each time lies inside one of the intervals (n, 2) (ends excluded)."""
+    inside = np.zeros(len(t_ns), dtype=bool)
+    for start, end in intervals:
+        inside |= (t_ns > start) & (t_ns < end)
+    return inside
+
+
+# -- an estimate against ground truth -------------------------------------------------------------
+def _matched(
+    est: Series, truth: Series, trim: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(t_ns, estimate values, truth values) at the estimate's samples (trimmed) that have a
+    truth sample within one truth period; None if none has."""
+    t, values = est.t_ns[trim : len(est.t_ns) - trim], est.values[trim : len(est.t_ns) - trim]
+    if not len(t) or not len(truth.t_ns):
+        return None
+    period = float(np.median(np.diff(truth.t_ns))) if len(truth.t_ns) > 1 else 0.0
+    i, dt = nearest(truth.t_ns, t)
+    ok = dt <= period
+    if not ok.any():
+        return None
+    return t[ok], values[ok], truth.values[i[ok]]
+
+
+def compare_states(
+    est: StateTopics,
+    truth: StateTopics,
+    model: mujoco.MjModel,
+    occlusions: Mapping[str, np.ndarray] | None = None,
+    trim: int = TRIM_KNOTS,
+) -> dict[str, Any]:
+    """Errors of `est` against `truth`, topic by topic: {"summary": SUMMARY_KEYS → float or
+    NaN, "bodies", "joints", "contacts", "imu_bias": details per body, joint, IMU;
+    "contact_threshold_N"}. The pooled contact metrics cover the bodies that touch something
+    (in the truth or the estimate) at some knot.
+
+    model: the robot (hinge joints are compared in degrees; its weight sets the contact
+        threshold). occlusions: body → (n, 2) int64 intervals in which its mocap was
+        occluded (None: occlusion metrics NaN).
+    """
+    pooled: dict[str, list[np.ndarray]] = {k: [] for k in ("pos", "rot", "lin", "ang")}
+    occluded: dict[str, list[np.ndarray]] = {"pos": [], "rot": []}
+    occluded_ns = 0
+    bodies = {}
+    for body in sorted(set(est.odometry) & set(truth.odometry)):
+        m = _matched(est.odometry[body], truth.odometry[body], trim)
+        if m is None:
+            continue
+        t, e, g = m
+        errors = {
+            "pos": e[:, :3] - g[:, :3],
+            "rot": rotation_angles(e[:, 3:7], g[:, 3:7]),
+            "lin": e[:, 7:10] - g[:, 7:10],
+            "ang": e[:, 10:13] - g[:, 10:13],
+        }
+        for key, value in errors.items():
+            pooled[key].append(value)
+        bodies[body] = {
+            "position_mm": 1e3 * rmse(errors["pos"]),
+            "orientation_deg": float(np.degrees(rmse(errors["rot"]))),
+            "linear_velocity_mps": rmse(errors["lin"]),
+            "angular_velocity_dps": float(np.degrees(rmse(errors["ang"]))),
+            "knots": len(t),
+        }
+        if occlusions is not None and body in occlusions:
+            span = intersect_intervals(occlusions[body], np.array([[t[0], t[-1]]]))
+            hidden = within(t, span)
+            occluded["pos"].append(errors["pos"][hidden])
+            occluded["rot"].append(errors["rot"][hidden])
+            occluded_ns += int(np.sum(span[:, 1] - span[:, 0]))
+            bodies[body] |= {
+                "occluded_s": float(np.sum(span[:, 1] - span[:, 0]) / 1e9),
+                "occluded_intervals_s": ((span - t[0]) / 1e9).tolist(),
+                "occluded_knots": int(hidden.sum()),
+                "occluded_position_mm": 1e3 * rmse(errors["pos"][hidden]),
+                "occluded_orientation_deg": float(np.degrees(rmse(errors["rot"][hidden]))),
+            }
+    joints, joint_errors = _joint_errors(est, truth, model, trim)
+    weight = float(np.sum(model.body_mass) * np.linalg.norm(model.opt.gravity))
+    contacts, contact_errors, flags = _contact_errors(est, truth, weight, trim)
+    imu, bias_errors = _bias_errors(est, truth, trim)
+
+    def pool(parts: list[np.ndarray]) -> np.ndarray:
+        return np.concatenate(parts) if parts else np.zeros((0, 1))
+
+    force = rmse(pool(contact_errors))
+    precision, recall = (
+        precision_recall(pool(flags["est"]), pool(flags["truth"]))
+        if flags["est"]
+        else (float("nan"), float("nan"))
+    )
+    summary = {
+        "position_mm": 1e3 * rmse(pool(pooled["pos"])),
+        "orientation_deg": float(np.degrees(rmse(pool(pooled["rot"])))),
+        "joint_deg": float(np.degrees(rmse(pool(joint_errors["pos"])))),
+        "linear_velocity_mps": rmse(pool(pooled["lin"])),
+        "angular_velocity_dps": float(np.degrees(rmse(pool(pooled["ang"])))),
+        "joint_velocity_dps": float(np.degrees(rmse(pool(joint_errors["vel"])))),
+        "contact_force_N": force,
+        "contact_force_pct_weight": 100.0 * force / weight,
+        "contact_precision": precision,
+        "contact_recall": recall,
+        "imu_accel_bias_mps2": rmse(pool(bias_errors["accel"])),
+        "imu_gyro_bias_dps": float(np.degrees(rmse(pool(bias_errors["gyro"])))),
+        "occluded_position_mm": 1e3 * rmse(pool(occluded["pos"])),
+        "occluded_orientation_deg": float(np.degrees(rmse(pool(occluded["rot"])))),
+        "occluded_s": occluded_ns / 1e9 if occlusions is not None else float("nan"),
+    }
+    return {
+        "summary": summary,
+        "bodies": bodies,
+        "joints": joints,
+        "contacts": contacts,
+        "contact_threshold_N": CONTACT_WEIGHT_FRACTION * weight,
+        "imu_bias": imu,
+    }
+
+
+def _joint_errors(
+    est: StateTopics, truth: StateTopics, model: mujoco.MjModel, trim: int
+) -> tuple[dict[str, Any], dict[str, list[np.ndarray]]]:
+    """Per hinge joint angle and velocity RMSE (deg, deg/s), and the pooled errors (rad)."""
+    details: dict[str, Any] = {}
+    errors: dict[str, list[np.ndarray]] = {"pos": [], "vel": []}
+    if est.joints is None or truth.joints is None:
+        return details, errors
+    hinge = int(mujoco.mjtJoint.mjJNT_HINGE)
+    for name in est.joint_names:
+        j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if name not in truth.joint_names or j < 0 or int(model.jnt_type[j]) != hinge:
+            continue
+        m = _matched(est.joint(name), truth.joint(name), trim)
+        if m is None:
+            continue
+        _, e, g = m
+        d = e[:, :2] - g[:, :2]
+        errors["pos"].append(d[:, 0])
+        errors["vel"].append(d[:, 1])
+        details[name] = {
+            "angle_deg": float(np.degrees(rmse(d[:, 0]))),
+            "velocity_dps": float(np.degrees(rmse(d[:, 1]))),
+        }
+    return details, errors
+
+
+def _contact_errors(
+    est: StateTopics, truth: StateTopics, weight: float, trim: int
+) -> tuple[dict[str, Any], list[np.ndarray], dict[str, list[np.ndarray]]]:
+    """Per body net contact force RMSE (N) and contact precision/recall; the force errors of
+    the bodies that touch something (in the truth or the estimate) and their in-contact flags."""
+    threshold = CONTACT_WEIGHT_FRACTION * weight
+    details: dict[str, Any] = {}
+    errors: list[np.ndarray] = []
+    flags: dict[str, list[np.ndarray]] = {"est": [], "truth": []}
+    for body in sorted(set(est.contact_wrench) & set(truth.contact_wrench)):
+        m = _matched(est.contact_wrench[body], truth.contact_wrench[body], trim)
+        if m is None:
+            continue
+        _, e, g = m
+        touching_est, touching_truth = (
+            in_contact(e[:, :3], threshold),
+            in_contact(g[:, :3], threshold),
+        )
+        if not (touching_est.any() or touching_truth.any()):
+            continue
+        precision, recall = precision_recall(touching_est, touching_truth)
+        errors.append(e[:, :3] - g[:, :3])
+        flags["est"].append(touching_est)
+        flags["truth"].append(touching_truth)
+        details[body] = {
+            "force_N": rmse(e[:, :3] - g[:, :3]),
+            "precision": precision,
+            "recall": recall,
+            "in_contact_truth": float(touching_truth.mean()),
+            "in_contact_estimate": float(touching_est.mean()),
+        }
+    return details, errors, flags
+
+
+def _bias_errors(
+    est: StateTopics, truth: StateTopics, trim: int
+) -> tuple[dict[str, Any], dict[str, list[np.ndarray]]]:
+    """Per IMU bias RMSE (accelerometer m/s², gyro deg/s), matched by name."""
+    details: dict[str, Any] = {}
+    errors: dict[str, list[np.ndarray]] = {"accel": [], "gyro": []}
+    for name in sorted(set(est.imu_bias) & set(truth.imu_bias)):
+        m = _matched(est.imu_bias[name], truth.imu_bias[name], trim)
+        if m is None:
+            continue
+        _, e, g = m
+        errors["accel"].append(e[:, :3] - g[:, :3])
+        errors["gyro"].append(e[:, 3:] - g[:, 3:])
+        details[name] = {
+            "accel_mps2": rmse(e[:, :3] - g[:, :3]),
+            "gyro_dps": float(np.degrees(rmse(e[:, 3:] - g[:, 3:]))),
+            "true_accel_mps2": rmse(g[:, :3]),
+            "true_gyro_dps": float(np.degrees(rmse(g[:, 3:]))),
+        }
+    return details, errors
+
+
+# -- predictions of a held-out stream -------------------------------------------------------------
+def channel_errors(
+    residuals: np.ndarray, sigma: np.ndarray, channels: tuple[str, ...]
+) -> dict[str, dict[str, float]]:
+    """Per channel: RMSE and median |e| (the stream's units) and the whitened RMSE (e/σ),
+    of residuals (N, C) (NaN where not measured); sigma (C,) the config's noise."""
+    out = {}
+    for c, name in enumerate(channels):
+        e = residuals[:, c]
+        e = e[np.isfinite(e)]
+        out[name] = {
+            "rmse": rmse(e),
+            "median_abs": float(np.median(np.abs(e))) if len(e) else float("nan"),
+            "whitened_rmse": rmse(e / sigma[c]),
+            "samples": len(e),
+        }
+    return out
+
+
+def json_ready(value: Any) -> Any:
+    """A JSON-safe copy: NaN/Inf → None, numpy scalars and arrays → Python numbers and lists."""
+    if isinstance(value, dict):
+        return {str(k): json_ready(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | np.ndarray):
+        return [json_ready(v) for v in value]
+    if isinstance(value, np.integer | np.bool_):
+        return value.item()
+    if isinstance(value, float | np.floating):
+        return float(value) if np.isfinite(value) else None
+    return value
