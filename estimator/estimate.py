@@ -27,6 +27,7 @@ class Estimate:
     imu_bias:      stream name → (T, 6) accelerometer bias (m/s²) then gyro bias (rad/s)
     residuals:     factor type ("physics", a stream name, …) → (T, k) whitened residuals
                    at each knot (NaN where the knot has no such factor)
+    cost_by_type:  factor type → its robust cost at this trajectory
     model_name:    the model the estimate belongs to (bundled name or MJCF path)
     """
 
@@ -42,6 +43,7 @@ class Estimate:
     model_name: str
     imu_bias: dict[str, np.ndarray] = field(default_factory=dict)
     residuals: dict[str, np.ndarray] = field(default_factory=dict)
+    cost_by_type: dict[str, float] = field(default_factory=dict)
 
     @property
     def T(self) -> int:

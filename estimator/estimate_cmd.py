@@ -23,7 +23,7 @@ from estimator.config import load_config
 from estimator.errors import LogError, PhysfuseError
 from estimator.estimate import Estimate
 from estimator.logs import read_log
-from estimator.problem import SETTINGS, Settings
+from estimator.problem import CHOICES, SETTINGS, Settings
 from estimator.run import Summary, estimate, initial_trajectory
 from estimator.simulate.writer import (
     Ros2Writer,
@@ -43,7 +43,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     view.add_argument("--spawn", action="store_true", help="open a Rerun viewer")
     view.add_argument("--serve", action="store_true", help="serve a Rerun web viewer")
     parser.add_argument(
-        "--path", choices=["native", "reference"], help="physics path (default: config/native)"
+        "--method",
+        choices=CHOICES["method"],
+        help="physics (default): the physics-prior smoother; baselines: kinematic (the same "
+        "smoother without physics factors, constant-acceleration prior), ekf / ukf (filters "
+        "with the forward dynamics as process model), raw (measurements interpolated)",
+    )
+    parser.add_argument(
+        "--path", choices=CHOICES["path"], help="physics path (default: config/native)"
     )
     parser.add_argument("--window", type=float, help="window length in s (default 4)")
     parser.add_argument("--iterations", type=int, help="iterations per window (default 30)")
@@ -54,6 +61,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config, extra_sections=("estimator", "simulate"))
     settings = Settings.from_config(config)
     overrides = {
+        "method": args.method,
         "path": args.path,
         "window_s": args.window,
         "max_iterations": args.iterations,

@@ -16,6 +16,10 @@ Factors, all on (z_{k−1}, z_k, z_{k+1}) for the interior knots k = 1 … T−2
     prior     a_k / σ_a                                   a weak smoothness prior
     bias      (b_{k+1} − b_k) / (σ_walk √h)               random walk
 
+and, optionally (the kinematic method), on (z_{k−1} … z_{k+2}):
+
+    jerk      (a_{k+1} − a_k) / (h σ_j)                   constant-acceleration prior
+
 Sensor samples are brought to the knot times (linear interpolation; IMU samples averaged
 over the knot's interval, σ/√n). Rows are whitened here; `estimator.smoother` weights them
 robustly (Huber) and solves.
@@ -42,11 +46,19 @@ _SENS = mujoco.mjtSensor
 
 # the [estimator] section of a config: key → (default, meaning)
 SETTINGS: Mapping[str, tuple[object, str]] = {
+    "method": (
+        "physics",
+        "physics (the physics prior) | kinematic (sensors and a smoothness prior)",
+    ),
     "path": ("native", "physics path for the residuals: native | reference"),
     "h": (0.0, "knot spacing in s (0: the model's timestep)"),
     "physics_std_unactuated": (20.0, "σ of u on dofs no actuator drives, N or N·m"),
     "physics_std_actuated": (20.0, "σ of u − (actuator force of the commands), N or N·m"),
     "accel_prior_std": (200.0, "σ of the smoothness prior on a_k, units/s²"),
+    "jerk_prior_std": (
+        0.0,
+        "σ of a constant-acceleration prior on (a_{k+1} − a_k)/h, units/s³ (0: none)",
+    ),
     "huber_k": (2.0, "Huber threshold on a whitened residual block"),
     "window_s": (4.0, "length of one smoothing window, s"),
     "overlap_s": (0.5, "overlap of consecutive windows, s"),
@@ -57,14 +69,24 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
     "fd_eps": (1e-6, "finite-difference step of mjd_inverseFD"),
 }
 
+CHOICES: Mapping[str, tuple[str, ...]] = {
+    "method": ("physics", "kinematic", "ekf", "ukf", "raw"),
+    "path": ("native", "reference"),
+}
+# the kinematic baseline: no physics factors; a constant-acceleration (white jerk) prior with
+# σ_j of fast legged-robot motion, set once (not fitted to any recording)
+KINEMATIC_JERK_STD = 1000.0
+
 
 @dataclass(frozen=True)
 class Settings:
+    method: str = "physics"
     path: str = "native"
     h: float = 0.0
     physics_std_unactuated: float = 20.0
     physics_std_actuated: float = 20.0
     accel_prior_std: float = 200.0
+    jerk_prior_std: float = 0.0
     huber_k: float = 2.0
     window_s: float = 4.0
     overlap_s: float = 0.5
@@ -73,6 +95,13 @@ class Settings:
     bias_prior_accel: float = 0.5
     bias_prior_gyro: float = 0.05
     fd_eps: float = 1e-6
+
+    @property
+    def jerk_std(self) -> float:
+        """σ_j of the constant-acceleration prior (0: none); the kinematic method's default."""
+        if self.jerk_prior_std or self.method != "kinematic":
+            return self.jerk_prior_std
+        return KINEMATIC_JERK_STD
 
     @classmethod
     def from_config(cls, config: Config) -> Settings:
@@ -88,10 +117,10 @@ class Settings:
         for key, value in table.items():
             default = SETTINGS[key][0]
             if isinstance(default, str):
-                if value not in ("native", "reference"):
+                if value not in CHOICES[key]:
                     raise ConfigError(
-                        f"{config.path}: estimator.{key} = {value!r}; expected 'native' or "
-                        "'reference'"
+                        f"{config.path}: estimator.{key} = {value!r}; expected one of "
+                        + ", ".join(repr(c) for c in CHOICES[key])
                     )
             elif not isinstance(value, int | float) or isinstance(value, bool) or value < 0:
                 raise ConfigError(
@@ -323,6 +352,8 @@ def build_problem(
                 )
             )
     qfrc_known, sigma = _known_forces(model, config, measurements, t_ns, settings)
+    if settings.method == "kinematic":
+        sigma[:] = np.inf  # no physics factor anywhere
     bias_walk = np.concatenate(walks) if walks else np.zeros(0)
     return Problem(model, h, t_ns, blocks, qfrc_known, sigma, settings, nb, imu_streams, bias_walk)
 

@@ -57,14 +57,21 @@ def estimate(
     settings: Settings,
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[Estimate, Summary]:
-    """Smooth the whole log; `progress(done, total)` is called after each window."""
+    """Estimate the whole log by `settings.method`; `progress(done, total)` is called after
+    each window (physics, kinematic) or stretch of the log (filters)."""
     # MuJoCo runs on THREADS threads; the small BLAS calls between its passes are fastest on
     # one (measured: a multithreaded OpenBLAS spin-waits 10× slower on a busy machine)
     with threadpool_limits(limits=1, user_api="blas"):
-        return _estimate(config, measurements, settings, progress)
+        if settings.method == "raw":
+            return raw_estimate(config, measurements, settings)
+        if settings.method in ("ekf", "ukf"):
+            from estimator.baselines.filters import filter_estimate  # (it builds on this module)
+
+            return filter_estimate(config, measurements, settings, settings.method, progress)
+        return smooth(config, measurements, settings, progress)
 
 
-def _estimate(
+def smooth(
     config: Config,
     measurements: Mapping[str, Measurement],
     settings: Settings,
@@ -123,22 +130,49 @@ def _estimate(
             break
     assert bias is not None
     full = build_problem(config, measurements, settings, t_ns, compiled)
-    est = collect_estimate(full, qpos, bias, std, config)
-    lin = Linearizer(full)
-    try:
-        _, cost_by_type = lin.cost(qpos, bias)
-    finally:
-        lin.close()
-    warnings.extend(consistency_warnings(est))
+    return finish(config, full, qpos, bias, std, start, iterations, converged, warnings, passes)
+
+
+def raw_estimate(
+    config: Config, measurements: Mapping[str, Measurement], settings: Settings
+) -> tuple[Estimate, Summary]:
+    """The measurements alone (the `raw` method): mocap poses, markers fitted by Kabsch, and
+    encoders, interpolated onto the knots (`initial_trajectory`); no bias, no covariance."""
+    start = time.perf_counter()
+    compiled = model_with_sensors(config)
+    h = settings.h or float(compiled[0].opt.timestep)
+    problem = build_problem(config, measurements, settings, knot_grid(measurements, h), compiled)
+    qpos = initial_trajectory(problem.model, measurements, problem.t_ns)
+    bias = np.zeros((problem.T, problem.nb))
+    std = np.full((problem.T, problem.model.nv), np.nan)
+    return finish(config, problem, qpos, bias, std, start, [], [], [], {})
+
+
+def finish(
+    config: Config,
+    problem: Problem,
+    qpos: np.ndarray,
+    bias: np.ndarray,
+    std: np.ndarray,
+    start: float,
+    iterations: list[int],
+    converged: list[bool],
+    warnings: list[str],
+    passes: Mapping[str, int],
+) -> tuple[Estimate, Summary]:
+    """The Estimate of a whole-log trajectory and its Summary (any method)."""
+    est = collect_estimate(problem, qpos, bias, std, config)
+    if problem.settings.method == "physics":  # (a baseline's misfit is no news about the model)
+        warnings = warnings + consistency_warnings(est)
     summary = Summary(
-        duration_s=(t_ns[-1] - t_ns[0]) / 1e9,
-        knots=T,
-        h=h,
+        duration_s=(problem.t_ns[-1] - problem.t_ns[0]) / 1e9,
+        knots=problem.T,
+        h=problem.h,
         windows=len(iterations),
         iterations=iterations,
         converged=converged,
-        cost_by_type=cost_by_type,
-        largest_residuals=largest_residuals(est, full),
+        cost_by_type=est.cost_by_type,
+        largest_residuals=largest_residuals(est, problem),
         wall_time_s=time.perf_counter() - start,
         warnings=warnings,
         **passes,
@@ -316,7 +350,8 @@ def collect_estimate(
         qfrc[k] = inv.qfrc_inverse
         constraints.append(inv.constraints)
     imu_bias = {name: bias[:, 6 * i : 6 * i + 6] for i, name in enumerate(problem.imu_streams)}
-    est = Estimate(
+    residuals, cost_by_type = residuals_by_type(problem, qpos, bias)
+    return Estimate(
         t_ns=problem.t_ns,
         h=h,
         qpos=qpos,
@@ -328,30 +363,33 @@ def collect_estimate(
         constraints=tuple(constraints),
         model_name=config.model,
         imu_bias=imu_bias,
-        residuals=residuals_by_type(problem, qpos, bias),
+        residuals=residuals,
+        cost_by_type=cost_by_type,
     )
-    return est
 
 
 def residuals_by_type(
     problem: Problem, qpos: np.ndarray, bias: np.ndarray
-) -> dict[str, np.ndarray]:
+) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """Whitened residuals per knot, unweighted: "physics" (T, nv), "prior" (T, nv) and one
-    (T, rows) array per stream; NaN where a knot has no such factor (and at both end knots)."""
+    (T, rows) array per stream, NaN where a knot has no such factor (and at both end knots);
+    and the robust cost per factor type."""
     lin = Linearizer(problem)
     try:
         blocks = lin.blocks(lin.terms(qpos, False), bias, robust=False)
+        cost = lin.bias_cost(bias)
     finally:
         lin.close()
     parts: dict[str, list[np.ndarray]] = {}
     for block in blocks:  # a pose stream's position and rotation rows together
         parts.setdefault(block.name, []).append(np.where(block.valid, block.r, np.nan))
+        cost[block.name] = cost.get(block.name, 0.0) + float(block.cost.sum())
     out = {}
     for name, rows in parts.items():
         r = np.full((problem.T, sum(p.shape[1] for p in rows)), np.nan)
         r[1:-1] = np.concatenate(rows, axis=1)
         out[name] = r
-    return out
+    return out, cost
 
 
 UNEXPLAINED_MEDIAN_SIGMA = 3.0  # median |whitened residual| of a factor type; Gaussian: 0.67

@@ -16,7 +16,6 @@ also avoids GTSAM's CustomFactor path, which copies the whole Values on every ca
 
 from __future__ import annotations
 
-import functools
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -36,7 +35,6 @@ from estimator.problem import (
 )
 
 THREADS = 2
-SPAN = 3  # keys per factor: (z_{k−1}, z_k, z_{k+1})
 
 
 @dataclass(frozen=True)
@@ -72,9 +70,10 @@ class Terms:
 class Block:
     """One factor's whitened rows at every interior knot, robust weights applied.
 
-    r: (K, m); J: (K, m, 3 nv) over (x_{k−1}, x_k, x_{k+1}) or None; J_bias: (K, m, nb) over
-    b_k or None; cost: (K,) robust cost of the rows at each knot; valid: (K, m) rows that carry
-    a factor (a measurement, a known force); the others are 0.
+    r: (K, m); J: (K, m, 3 nv) over (x_{k−1}, x_k, x_{k+1}) (the jerk prior: 4 nv, to x_{k+2})
+    or None; J_bias: (K, m, nb) over b_k or None; cost: (K,) robust cost of the rows at each
+    knot; valid: (K, m) rows that carry a factor (a measurement, a known force); the others
+    are 0.
     """
 
     name: str
@@ -102,8 +101,10 @@ class Linearizer:
         self.knots = [KnotModel(problem, problem.settings.path) for _ in range(THREADS)]
         self.rotations = _RotationDofs.of(problem.model)
         rotation = {d + i for _, d in self.rotations.quat_dofs for i in range(3)}
-        self.vector_dof = min(set(range(problem.model.nv)) - rotation, default=-1)
+        # a dof where difference Jacobians are ±1 (any dof if all are rotations: overwritten)
+        self.vector_dof = min(set(range(problem.model.nv)) - rotation, default=0)
         self.pool = ThreadPoolExecutor(THREADS)
+        self.span = 4 if problem.settings.jerk_std > 0 else 3  # keys a knot's rows reach
         self.passes = {True: 0, False: 0}  # MuJoCo passes over all knots, with/without Jacobians
 
     # -- MuJoCo at every knot (threads; MuJoCo releases the GIL) ------------------------------
@@ -131,33 +132,34 @@ class Linearizer:
         list(self.pool.map(work, [interior[i::THREADS] for i in range(THREADS)], self.knots))
         if not with_jacobians:
             return Terms(a[1:-1], u, s)
-        # chain rule through v_k = (q_k ⊖ q_{k−1})/h and a_k = (v_{k+1} − v_k)/h
+        # chain rule through v_k = (q_k ⊖ q_{k−1})/h and a_k = (v_{k+1} − v_k)/h:
+        # ∂v_k/∂(x_{k−1}, x_k) = (d1_k, d2_k)/h, ∂a_k/∂(x_{k−1}, x_k, x_{k+1}) =
+        # (−d1_k, d1_{k+1} − d2_k, d2_{k+1})/h², with d1, d2 of the pair (q_{k−1}, q_k)
         d1, d2 = difference_jacobians(p.model, self.rotations, qpos[:-1], qpos[1:])
-        dv = (d1[:-1] / h, d2[:-1] / h)  # ∂v_k/∂(x_{k−1}, x_k)
-        da = (-d1[:-1] / h**2, (d1[1:] - d2[:-1]) / h**2, d2[1:] / h**2)  # ∂a_k/∂(x_{k−1…k+1})
 
         def chained(D: np.ndarray) -> np.ndarray:
+            """[P d1_k,  D_q + P d2_k + Q d1_{k+1},  Q d2_{k+1}] with P = D_v/h − D_a/h²,
+            Q = D_a/h² (the Jacobians over x_{k−1}, x_k, x_{k+1})."""
             Dq, Dv, Da = (D[j].transpose(0, 2, 1) for j in range(3))
-            times = self._times_difference
-            return np.concatenate(
-                [
-                    times(Dv, dv[0]) + times(Da, da[0]),
-                    Dq + times(Dv, dv[1]) + times(Da, da[1]),
-                    times(Da, da[2]),
-                ],
-                axis=2,
-            )
+            Q = Da / h**2
+            P = Dv / h - Q
+            out = np.empty((*Dq.shape[:2], 3 * nv))
+            out[:, :, :nv] = self._times_difference(P, d1[:-1])
+            out[:, :, nv : 2 * nv] = Dq + self._times_difference(P, d2[:-1])
+            out[:, :, nv : 2 * nv] += self._times_difference(Q, d1[1:])
+            out[:, :, 2 * nv :] = self._times_difference(Q, d2[1:])
+            return out
 
-        return Terms(a[1:-1], u, s, chained(F), chained(S), np.concatenate(da, axis=2))
+        da = np.concatenate([-d1[:-1], d1[1:] - d2[:-1], d2[1:]], axis=2) / h**2
+        return Terms(a[1:-1], u, s, chained(F), chained(S), da)
 
-    def _times_difference(self, D: np.ndarray, M: np.ndarray) -> np.ndarray:
-        """D @ M (K, m, nv) for M (K, nv, nv) = c I on vector dofs plus 3×3 rotation blocks
-        (the difference Jacobians and their combinations): c D, rotation columns redone."""
-        vector = self.vector_dof
-        out = D * M[:, vector, vector][:, None, None] if vector >= 0 else np.zeros(D.shape)
+    def _times_difference(self, D: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """D @ d (K, m, nv) for a difference Jacobian d (K, nv, nv) = ±I on vector dofs, 3×3
+        blocks on rotations: ±D with the rotation columns redone."""
+        out = D * d[:, self.vector_dof, self.vector_dof][:, None, None]
         for _, dadr in self.rotations.quat_dofs:
             rot = slice(dadr, dadr + 3)
-            out[:, :, rot] = D[:, :, rot] @ M[:, rot, rot]
+            out[:, :, rot] = D[:, :, rot] @ d[:, rot, rot]
         return out
 
     # -- whitened, robustly weighted rows of every factor --------------------------------------
@@ -201,6 +203,19 @@ class Linearizer:
         r = t.a / sa
         J = t.da / sa if t.da is not None else None
         out.append(Block("prior", r, J, 0.5 * np.sum(r**2, axis=1), np.ones(r.shape, bool)))
+        if self.span == 4:  # constant-acceleration prior (a_{k+1} − a_k)/(h σ_j), k < T − 2
+            sj = p.h * p.settings.jerk_std
+            r = np.zeros_like(t.a)
+            r[:-1] = (t.a[1:] - t.a[:-1]) / sj
+            J = None
+            if t.da is not None:
+                nv = p.model.nv
+                J = np.zeros((K, nv, 4 * nv))
+                J[:-1, :, : 3 * nv] -= t.da[:-1] / sj
+                J[:-1, :, nv:] += t.da[1:] / sj
+            valid = np.ones(r.shape, bool)
+            valid[-1] = False
+            out.append(Block("jerk prior", r, J, 0.5 * np.sum(r**2, axis=1), valid))
         # sensors, robust
         for sensor in p.blocks:
             meas = sensor.values[1:-1]
@@ -235,22 +250,22 @@ class Linearizer:
         total: dict[str, float] = {}
         for b in self.blocks(self.terms(qpos, False), bias):
             total[b.name] = total.get(b.name, 0.0) + float(b.cost.sum())
-        total.update(self._bias_cost(bias))
+        total.update(self.bias_cost(bias))
         return sum(total.values()), total
 
     def jacobian(self, qpos: np.ndarray, bias: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The whitened, weighted rows of every knot: r (K, m) and J (K, m, 3 nz) over
-        (z_{k−1}, z_k, z_{k+1}), z = (x, b)."""
+        """The whitened, weighted rows of every knot: r (K, m) and J (K, m, span·nz) over
+        (z_{k−1}, z_k, z_{k+1}[, z_{k+2}]), z = (x, b)."""
         p = self.problem
         nv, nz = p.model.nv, p.nz
         blocks = self.blocks(self.terms(qpos, True), bias)
         r = np.concatenate([b.r for b in blocks], axis=1)
-        J = np.zeros((p.T - 2, r.shape[1], SPAN * nz))
+        J = np.zeros((p.T - 2, r.shape[1], self.span * nz))
         row = 0
         for b in blocks:
             rows = slice(row, row + b.r.shape[1])
             assert b.J is not None
-            for key in range(SPAN):
+            for key in range(b.J.shape[2] // nv):
                 J[:, rows, key * nz : key * nz + nv] = b.J[:, :, key * nv : (key + 1) * nv]
             if b.J_bias is not None:
                 J[:, rows, nz + nv : 2 * nz] = b.J_bias
@@ -276,7 +291,8 @@ class Linearizer:
             out.append((k, k + 1, bias[k + 1] - bias[k], walk))
         return out
 
-    def _bias_cost(self, bias: np.ndarray) -> dict[str, float]:
+    def bias_cost(self, bias: np.ndarray) -> dict[str, float]:
+        """{"imu_bias": cost of the bias prior and random walk} ({} without an IMU)."""
         rows = self.bias_rows(bias)
         if not rows:
             return {}
@@ -293,7 +309,7 @@ class Linearizer:
 @dataclass
 class BandedSystem:
     """JᵀJ dx = −Jᵀr of a window, by blocks of keys: H_kk = diag[k] (T, nz, nz),
-    H_{k+d, k} = lower[d − 1][k] for d = 1, 2; g = Jᵀr (T, nz)."""
+    H_{k+d, k} = lower[d − 1][k] for d = 1 … span − 1; g = Jᵀr (T, nz)."""
 
     diag: np.ndarray
     lower: list[np.ndarray]
@@ -302,18 +318,19 @@ class BandedSystem:
     @classmethod
     def of(cls, r: np.ndarray, J: np.ndarray, lin: Linearizer, bias: np.ndarray) -> BandedSystem:
         p = lin.problem
-        T, nz, nv = p.T, p.nz, p.model.nv
+        T, nz, nv, span = p.T, p.nz, p.model.nv, lin.span
         K = T - 2
-        G = np.einsum("kmi,kmj->kij", J, J, optimize=True).reshape(K, SPAN, nz, SPAN, nz)
-        gk = np.einsum("kmi,km->ki", J, r, optimize=True).reshape(K, SPAN, nz)
+        G = np.einsum("kmi,kmj->kij", J, J, optimize=True).reshape(K, span, nz, span, nz)
+        gk = np.einsum("kmi,km->ki", J, r, optimize=True).reshape(K, span, nz)
         diag = np.zeros((T, nz, nz))
-        lower = [np.zeros((T - d, nz, nz)) for d in range(1, SPAN)]
+        lower = [np.zeros((T - d, nz, nz)) for d in range(1, span)]
         g = np.zeros((T, nz))
-        for a in range(SPAN):  # knot k's factor adds to keys k−1+a, k−1+b
-            g[a : a + K] += gk[:, a]
-            diag[a : a + K] += G[:, a, :, a]
+        for a in range(span):  # knot k's rows add to keys k − 1 + a, k − 1 + b
+            n = min(K, T - a)  # (the jerk prior's last knot reaches no key beyond T − 1)
+            g[a : a + n] += gk[:n, a]
+            diag[a : a + n] += G[:n, a, :, a]
             for b in range(a):
-                lower[a - b - 1][b : b + K] += G[:, a, :, b]
+                lower[a - b - 1][b : b + n] += G[:n, a, :, b]
         if p.nb:  # bias prior on b_0, random walk (b_{k+1} − b_k)/(σ_walk √h)
             b_ = slice(nv, nz)
             s = p.settings
@@ -331,6 +348,36 @@ class BandedSystem:
             g[1:, b_] += step
         return cls(diag, lower, g)
 
+    def marginal_std(self, nv: int, warnings: list[str]) -> np.ndarray:
+        """(T, nv) marginal standard deviations of x_k, by GTSAM's Marginals of this system.
+
+        Contact directions make JᵀJ stiff (≈1e12) beside weakly observed ones, so the system is
+        regularized by 1e-9·diag(JᵀJ), a prior far weaker than any measurement.
+        """
+        T, nz, _ = self.diag.shape
+        graph = gtsam.GaussianFactorGraph()
+        zero, z = np.zeros((nz, nz)), np.zeros(nz)
+        d = np.einsum("kii->ki", self.diag)
+        damping = 1e-9 * (d + 1e-12 * max(float(d.max()), 1.0))
+        for k in range(T):  # H as one unary factor per key and one binary per coupled pair
+            graph.add(gtsam.HessianFactor(k, self.diag[k] + np.diag(damping[k]), z, 0.0))
+            for offset, blocks in enumerate(self.lower, start=1):
+                if k + offset < T:
+                    upper = blocks[k].T  # H_{k, k+offset}
+                    graph.add(gtsam.HessianFactor(k, k + offset, zero, upper, z, zero, z, 0.0))
+        std = np.full((T, nv), np.nan)
+        try:
+            at = gtsam.VectorValues()  # a linear system: the covariances don't depend on it
+            for k in range(T):
+                at.insert(k, z)
+            marginals = gtsam.Marginals(graph, at)
+            for k in range(T):
+                std[k] = np.sqrt(np.clip(np.diag(marginals.marginalCovariance(k))[:nv], 0, None))
+        except RuntimeError as err:
+            first = str(err).strip().splitlines()[0] if str(err).strip() else "ill-posed"
+            warnings.append(f"covariances unavailable (GTSAM: {first}); qpos_std is NaN")
+        return std
+
     def scaled_band(self) -> tuple[np.ndarray, np.ndarray]:
         """Marquardt scaling s = diag(H)^−½ and the lower band of S H S in LAPACK storage
         (ab[i − j, j] = (S H S)_ij), unit diagonal."""
@@ -338,12 +385,19 @@ class BandedSystem:
         d = np.einsum("kii->ki", self.diag).reshape(-1)
         s = 1.0 / np.sqrt(d + 1e-12 * max(float(d.max()), 1.0))
         S = s.reshape(T, nz)
-        ab = np.zeros((SPAN * nz, T * nz))
+        # column strip of key k: C_k = [H_kk; H_{k+1,k}; …] (span·nz × nz), zero-padded below;
+        # LAPACK's ab[d, k nz + c] = H[k nz + c + d, k nz + c] = C_k[c + d, c]
+        span = len(self.lower) + 1
+        C = np.zeros((T, (span + 1) * nz, nz))
         for offset, blocks in enumerate([self.diag, *self.lower]):
             n = len(blocks)
-            scaled = S[offset : offset + n, :, None] * blocks * S[:n, None, :]
-            band, col, keep = _band_indices(offset, n, nz)
-            ab[band, col] = scaled.reshape(n, -1)[:, keep]
+            C[:n, offset * nz : (offset + 1) * nz] = S[offset : offset + n, :, None] * blocks
+        C *= S[:, None, :]
+        st = C.strides
+        skewed = np.lib.stride_tricks.as_strided(
+            C, shape=(T, span * nz, nz), strides=(st[0], st[1], st[1] + st[2]), writeable=False
+        )
+        ab = skewed.transpose(1, 0, 2).reshape(span * nz, T * nz)
         return s, ab
 
     def damped_step(self, s: np.ndarray, ab: np.ndarray, lam: float) -> np.ndarray:
@@ -354,17 +408,6 @@ class BandedSystem:
         factor = scipy.linalg.cholesky_banded(damped, lower=True, check_finite=False)
         y = scipy.linalg.cho_solve_banded((factor, True), -s * self.g.reshape(-1))
         return (s * y).reshape(self.g.shape)
-
-
-@functools.cache
-def _band_indices(offset: int, n: int, nz: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Where the blocks H_{k+offset, k}, k < n, go in LAPACK lower band storage: row i − j and
-    column j of each kept entry (i ≥ j), and which of a block's nz² entries are kept."""
-    r, c = np.divmod(np.arange(nz * nz), nz)
-    keep = offset * nz + r >= c
-    band = np.broadcast_to(offset * nz + r[keep] - c[keep], (n, int(keep.sum())))
-    col = np.arange(n)[:, None] * nz + c[keep][None, :]
-    return band, col, keep
 
 
 def solve_window(
@@ -379,7 +422,7 @@ def solve_window(
         lam = 1e-3
         converged = False
         it = 0
-        r = J = None
+        system = None
         for it in range(1, p.settings.max_iterations + 1):  # noqa: B007
             r, J = lin.jacobian(qpos, bias)
             system = BandedSystem.of(r, J, lin, bias)
@@ -411,9 +454,9 @@ def solve_window(
         _, by_type = lin.cost(qpos, bias)
         std = np.full((p.T, p.model.nv), np.nan)
         warnings: list[str] = []
-        if covariance and r is not None and J is not None:
+        if covariance and system is not None:
             # the last linearization: at the solution, or one step (< tolerance) before it
-            std = _marginal_std(lin, r, J, bias, warnings)
+            std = system.marginal_std(p.model.nv, warnings)
         return WindowResult(
             qpos,
             bias,
@@ -429,54 +472,3 @@ def solve_window(
         )
     finally:
         lin.close()
-
-
-def _marginal_std(
-    lin: Linearizer, r: np.ndarray, J: np.ndarray, bias: np.ndarray, warnings: list[str]
-) -> np.ndarray:
-    """(T, nv) marginal standard deviations from GTSAM's Marginals of the linearized rows.
-
-    Contact directions make JᵀJ stiff (≈1e12) beside weakly observed ones, so the system is
-    regularized by 1e-9·diag(JᵀJ), a prior far weaker than any measurement.
-    """
-    p = lin.problem
-    T, nz, nv = p.T, p.nz, p.model.nv
-    graph = gtsam.GaussianFactorGraph()
-    unit = gtsam.noiseModel.Unit.Create(r.shape[1])
-    for i in range(T - 2):
-        blocks = [J[i, :, j * nz : (j + 1) * nz] for j in range(SPAN)]
-        graph.add(
-            gtsam.JacobianFactor(i, blocks[0], i + 1, blocks[1], i + 2, blocks[2], -r[i], unit)
-        )
-    select = np.zeros((p.nb, nz))
-    select[:, nv:] = np.eye(p.nb)
-    diag = np.zeros((T, nz))
-    column_norms = np.sum(J**2, axis=1).reshape(T - 2, SPAN, nz)
-    for j in range(SPAN):
-        diag[j : T - 2 + j] += column_norms[:, j]
-    for key_a, key_b, res, sigma in lin.bias_rows(bias):
-        A = select / sigma[:, None]
-        noise = gtsam.noiseModel.Unit.Create(p.nb)
-        if key_b is None:
-            graph.add(gtsam.JacobianFactor(key_a, A, -res / sigma, noise))
-        else:
-            graph.add(gtsam.JacobianFactor(key_a, -A, key_b, A, -res / sigma, noise))
-            diag[key_b, nv:] += 1.0 / sigma**2
-        diag[key_a, nv:] += 1.0 / sigma**2
-    scale = diag + 1e-12 * max(float(diag.max()), 1.0)
-    for k in range(T):  # the weak regularizer
-        graph.add(
-            gtsam.JacobianFactor(
-                k, np.diag(np.sqrt(1e-9 * scale[k])), np.zeros(nz), gtsam.noiseModel.Unit.Create(nz)
-            )
-        )
-    std = np.full((T, nv), np.nan)
-    try:
-        marginals = gtsam.Marginals(graph, graph.optimize())
-        for k in range(T):
-            cov = marginals.marginalCovariance(k)
-            std[k] = np.sqrt(np.clip(np.diag(cov)[:nv], 0, None))
-    except RuntimeError as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else "ill-posed"
-        warnings.append(f"covariances unavailable (GTSAM: {first}); qpos_std is NaN")
-    return std

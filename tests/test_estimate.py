@@ -15,17 +15,18 @@ from estimator.config import load_config
 from estimator.logs import read_log
 from estimator.problem import Settings, build_problem, knot_grid, retract
 from estimator.run import initial_trajectory
-from estimator.smoother import Linearizer
+from estimator.smoother import BandedSystem, Linearizer
 from estimator.truth import at_times, read_ground_truth
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _window(name: str, first: int, knots: int) -> tuple:
+def _window(name: str, first: int, knots: int, method: str = "physics") -> tuple:
     """(problem, qpos, bias) of a short window of a sample recording, away from its start."""
     config = load_config(ROOT / "configs" / f"{name}.toml", extra_sections=("estimator",))
     log = read_log(ROOT / "recordings" / f"{name}.mcap", config)
-    settings = Settings(huber_k=1e12)  # no robust reweighting: J is the residual's derivative
+    # no robust reweighting: J is the residual's derivative
+    settings = Settings(huber_k=1e12, method=method)
     h = float(config.load_model().opt.timestep)
     t_ns = knot_grid(log.measurements, h)[first : first + knots]
     problem = build_problem(config, log.measurements, settings, t_ns)
@@ -35,13 +36,19 @@ def _window(name: str, first: int, knots: int) -> tuple:
 
 
 @pytest.mark.parametrize(
-    ("name", "first"),
-    [("humanoid_push", 100), ("arm_box", 1200), ("quadruped_trot", 200)],
+    ("name", "first", "method"),
+    [
+        ("humanoid_push", 100, "physics"),
+        ("arm_box", 1200, "physics"),
+        ("quadruped_trot", 200, "physics"),
+        ("quadruped_trot", 200, "kinematic"),
+    ],
 )
-def test_factor_jacobians_match_numerical_differentiation_on_the_manifold(name, first):
+def test_factor_jacobians_match_numerical_differentiation_on_the_manifold(name, first, method):
     """Every row of knot k (physics, prior, each sensor: vectors, quaternions, IMU with bias,
-    force/torque) against central differences of q ⊕ x and b + δ."""
-    problem, qpos, bias = _window(name, first, 12)
+    force/torque; the kinematic method's jerk prior, reaching z_{k+2}) against central
+    differences of q ⊕ x and b + δ."""
+    problem, qpos, bias = _window(name, first, 12, method)
     lin = Linearizer(problem)
     k = 6
 
@@ -57,7 +64,7 @@ def test_factor_jacobians_match_numerical_differentiation_on_the_manifold(name, 
         nv, nz = problem.model.nv, problem.nz
         numeric = np.zeros_like(J)
         eps = 1e-7
-        for i, key in enumerate((k - 1, k, k + 1)):
+        for i, key in enumerate(range(k - 1, k - 1 + lin.span)):
             for c in range(nz):
                 rows = []
                 for sign in (1.0, -1.0):
@@ -77,6 +84,47 @@ def test_factor_jacobians_match_numerical_differentiation_on_the_manifold(name, 
     error = np.abs(J - numeric) / scale
     assert error.max() < 2e-3, f"worst row {np.unravel_index(error.argmax(), error.shape)}"
     assert len(r0) > 2 * nv + 6  # sensor rows beyond physics (nv) and prior (nv) compared
+
+
+def test_banded_normal_equations_and_marginals_match_the_dense_system():
+    """BandedSystem (JᵀJ by key blocks, bias prior and walk, LAPACK band storage, damped step,
+    GTSAM marginals) against the dense normal equations of the same rows."""
+    for method in ("physics", "kinematic"):  # bandwidth 2 and 3 keys
+        problem, qpos, bias = _window("humanoid_push", 100, 10, method)
+        lin = Linearizer(problem)
+        try:
+            r, J = lin.jacobian(qpos, bias)
+            system = BandedSystem.of(r, J, lin, bias)
+            T, nz, nv = problem.T, problem.nz, problem.model.nv
+            A = np.zeros((0, T * nz))
+            b = np.zeros(0)
+            for i in range(T - 2):  # knot rows, reaching keys i … i + span − 1
+                rows = np.zeros((r.shape[1], T * nz))
+                width = min(lin.span, T - i) * nz
+                rows[:, i * nz : i * nz + width] = J[i, :, :width]
+                A, b = np.vstack([A, rows]), np.r_[b, r[i]]
+            for key_a, key_b, res, sigma in lin.bias_rows(bias):
+                rows = np.zeros((problem.nb, T * nz))
+                rows[:, key_a * nz + nv : (key_a + 1) * nz] = np.diag(-1.0 / sigma)
+                if key_b is None:
+                    rows *= -1
+                else:
+                    rows[:, key_b * nz + nv : (key_b + 1) * nz] = np.diag(1.0 / sigma)
+                A, b = np.vstack([A, rows]), np.r_[b, res / sigma]
+            H, g = A.T @ A, A.T @ b
+            s, ab = system.scaled_band()
+            lam = 1e-3
+            dx = system.damped_step(s, ab, lam)
+            expected = np.linalg.solve(H + lam * np.diag(np.diag(H)), -g)
+            scale = np.abs(expected).max()  # contacts make H stiff (≈1e12): compare to scale
+            np.testing.assert_allclose(dx.reshape(-1), expected, rtol=0, atol=1e-5 * scale)
+            std = system.marginal_std(nv, [])
+            d = np.diag(H)
+            cov = np.linalg.inv(H + 1e-9 * np.diag(d + 1e-12 * max(d.max(), 1.0)))
+            expected_std = np.sqrt(np.diag(cov)).reshape(T, nz)[:, :nv]
+            np.testing.assert_allclose(std, expected_std, rtol=1e-5)
+        finally:
+            lin.close()
 
 
 def test_difference_jacobians_of_rotations():
