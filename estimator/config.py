@@ -28,7 +28,9 @@ Schema (see `configs/README.md` for a worked example):
       rigid_bodies  bodies = { rigid_body_name = "body", ... }   (mocap4r2 RigidBodies)
       markers       markers = { marker_name_or_index = "site", ... }   (mocap4r2 Markers)
       imu           site = "imu", quat_site_sensor = [w, x, y, z]  (IMU axes in the site
-                    frame; default identity)                 (sensor_msgs/Imu)
+                    frame; default identity), accel_range [m/s²], gyro_range [rad/s] (the
+                    measurement range per sensor axis, optional: a sample at or beyond it
+                    is saturated and left out)                (sensor_msgs/Imu)
       joint_state   joints = "model" (message names are model joint names) or
                     joints = { ros_name = "model_joint", ... }   (sensor_msgs/JointState)
       command       actuators = ["a0", "a1", ...]  (Float64MultiArray: data[i] drives a_i), or
@@ -98,7 +100,7 @@ _KIND_KEYS: Mapping[str, tuple[str, ...]] = {
     "tf": ("child_frame_id", "parent_frame_id", "body", "site"),
     "rigid_bodies": ("bodies",),
     "markers": ("markers",),
-    "imu": ("site", "quat_site_sensor"),
+    "imu": ("site", "quat_site_sensor", "accel_range", "gyro_range"),
     "joint_state": ("joints",),
     "command": ("actuators", "field"),
     "wrench": ("site", "quat_site_sensor"),
@@ -138,6 +140,9 @@ class StreamConfig:
     noise: Mapping[str, float]
     quat_site_sensor: tuple[float, float, float, float] = _IDENTITY_WXYZ
     field: str | None = None  # command from JointTrajectory: which point field
+    # imu: the measurement range per sensor axis (a sample at or beyond it is saturated)
+    accel_range: float = math.inf  # m/s²
+    gyro_range: float = math.inf  # rad/s
     parent_frame_id: str | None = None  # tf: accept only transforms from this frame
 
 
@@ -367,7 +372,16 @@ class _Parser:
         return self.name_table(raw, key, "markers", "site", "marker name or index")
 
     def map_imu(self, raw: dict[str, Any], key: str, model: mujoco.MjModel) -> dict[str, Any]:
-        return self.sensor_site(raw, key)
+        ranges = {}
+        for name in ("accel_range", "gyro_range"):
+            value = raw.get(name, math.inf)
+            ok = isinstance(value, int | float) and not isinstance(value, bool)
+            if not ok or math.isnan(value) or value <= 0:
+                raise self.error(
+                    f"{key}.{name}", f"expected a positive number, got {self.show(value)}"
+                )
+            ranges[name] = float(value)
+        return self.sensor_site(raw, key) | ranges
 
     def map_wrench(self, raw: dict[str, Any], key: str, model: mujoco.MjModel) -> dict[str, Any]:
         return self.sensor_site(raw, key)

@@ -20,15 +20,18 @@ and, optionally (the kinematic method), on (z_{k−1} … z_{k+2}):
 
     jerk      (a_{k+1} − a_k) / (h σ_j)                   constant-acceleration prior
 
-Sensor samples are brought to the knot times (linear interpolation; IMU samples averaged
-over the knot's interval, σ/√n). Rows are whitened here; `estimator.smoother` weights them
-robustly (Huber) and solves.
+Sensor samples are brought to the knot times: positions by linear interpolation; rates and
+accelerations averaged over the Euler step they belong to (gyro over (t_k − h, t_k], the step
+v_k moves through; accelerometer and force/torque over [t_k, t_k + h), where a_k acts), σ/√n;
+saturated IMU samples (at the configured range) left out. Rows are whitened here;
+`estimator.smoother` weights them robustly (Huber) and solves.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import mujoco
@@ -298,8 +301,9 @@ def build_problem(
                     )
                 )
         elif stream.kind == "imu":
-            accel_values, accel_counts = averaged_at_knots(m, t_ns, step_interval=True)
-            gyro_values, gyro_counts = averaged_at_knots(m, t_ns)
+            m = without_saturated(m, stream)
+            accel_values, accel_counts = averaged_at_knots(m, t_ns, "acc")
+            gyro_values, gyro_counts = averaged_at_knots(m, t_ns, "vel")
             accel = accel_values[:, 0, 7:10]
             gyro = gyro_values[:, 0, 4:7]
             bias = slice(nb, nb + 6)
@@ -318,9 +322,9 @@ def build_problem(
                     slice(nb + 3, nb + 6),
                 )
             )
-            # averaging n samples per knot: σ/√n (per knot, applied at whitening)
-            blocks[-2] = _scaled(blocks[-2], 1.0 / np.sqrt(np.maximum(accel_counts, 1)))
-            blocks[-1] = _scaled(blocks[-1], 1.0 / np.sqrt(np.maximum(gyro_counts, 1)))
+            # averaging n samples per knot: σ/√n (per knot and row, applied at whitening)
+            blocks[-2] = _scaled(blocks[-2], 1.0 / np.sqrt(np.maximum(accel_counts[:, 0, 7:10], 1)))
+            blocks[-1] = _scaled(blocks[-1], 1.0 / np.sqrt(np.maximum(gyro_counts[:, 0, 4:7], 1)))
             imu_streams.append(name)
             walks.append(
                 np.r_[np.full(3, noise["accel_bias_walk"]), np.full(3, noise["gyro_bias_walk"])]
@@ -340,7 +344,7 @@ def build_problem(
                     )
                 )
         elif stream.kind == "wrench":
-            values, _ = averaged_at_knots(m, t_ns, step_interval=True)
+            values, _ = averaged_at_knots(m, t_ns, "acc")
             blocks.append(
                 SensorBlock(
                     name, "vector", adr[0], values[:, 0, :3], np.full(3, noise["force_std"])
@@ -358,9 +362,9 @@ def build_problem(
     return Problem(model, h, t_ns, blocks, qfrc_known, sigma, settings, nb, imu_streams, bias_walk)
 
 
-def _scaled(block: SensorBlock, per_knot: np.ndarray) -> SensorBlock:
-    """A block whose σ is multiplied per knot: sigma becomes (T, n)."""
-    sigma = np.outer(per_knot, block.sigma)
+def _scaled(block: SensorBlock, factor: np.ndarray) -> SensorBlock:
+    """A block whose σ is multiplied per knot (T,) or per knot and row (T, n): sigma (T, n)."""
+    sigma = factor.reshape(len(factor), -1) * block.sigma
     return SensorBlock(block.stream, block.kind, block.rows, block.values, sigma, block.bias)
 
 
@@ -378,25 +382,51 @@ def interpolated_at_knots(m: Measurement, t_ns: np.ndarray) -> np.ndarray:
 
 
 def averaged_at_knots(
-    m: Measurement, t_ns: np.ndarray, step_interval: bool = False
+    m: Measurement, t_ns: np.ndarray, stage: str
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(T, E, K) mean of the samples each knot stands for (NaN where none) and (T,) counts.
+    """(T, E, K) mean of the samples each knot stands for and (T, E, K) their counts.
 
-    step_interval=False: samples within ±h/2 of t_k (a velocity-stage quantity, e.g. gyro);
-    True: samples within [t_k, t_k + h), the step over which qacc_k acts in the Euler step
-    (acceleration-stage quantities: accelerometer, force/torque).
+    NaN components (not carried, or left out) are not counted; NaN where a knot has none.
+    The samples of knot k are those of the Euler step its quantity belongs to:
+    stage "vel": (t_k − h, t_k], the step that v_k = (q_k ⊖ q_{k−1})/h moves through (the
+    mean rate over it; gyro); "acc": [t_k, t_k + h), the step over which qacc_k acts
+    (accelerometer, force/torque).
     """
     h_ns = int(t_ns[1] - t_ns[0]) if len(t_ns) > 1 else 1
-    start = t_ns if step_interval else t_ns - h_ns // 2
-    edges = np.concatenate([start, [start[-1] + h_ns]])
-    index = np.searchsorted(edges, m.t_ns, side="right") - 1
-    ok = (index >= 0) & (index < len(t_ns))
+    if stage == "vel":
+        index = np.searchsorted(t_ns, m.t_ns, side="left")
+        ok = (index < len(t_ns)) & (m.t_ns > t_ns[np.minimum(index, len(t_ns) - 1)] - h_ns)
+    else:
+        index = np.searchsorted(t_ns, m.t_ns, side="right") - 1
+        ok = (index >= 0) & (m.t_ns < t_ns[np.maximum(index, 0)] + h_ns)
+    carried = np.isfinite(m.values[ok])
     sums = np.zeros((len(t_ns), *m.values.shape[1:]))
-    n = np.zeros(len(t_ns))
-    np.add.at(sums, index[ok], m.values[ok])
-    np.add.at(n, index[ok], 1)
+    n = np.zeros_like(sums)
+    np.add.at(sums, index[ok], np.where(carried, m.values[ok], 0.0))
+    np.add.at(n, index[ok], carried)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return sums / n[:, None, None], n
+        return np.where(n > 0, sums / n, np.nan), n
+
+
+def without_saturated(m: Measurement, stream: StreamConfig) -> Measurement:
+    """The IMU samples with their accelerometer (gyro) left out (NaN) where a sensor axis is
+    at or beyond `accel_range` (`gyro_range`): a saturated reading only bounds the truth.
+
+    The reader has turned the vectors into the site frame; the range is per sensor axis,
+    v_sensor = R_site_sensorᵀ v_site.
+    """
+    if not len(m) or (math.isinf(stream.accel_range) and math.isinf(stream.gyro_range)):
+        return m
+    mat = np.zeros(9)
+    mujoco.mju_quat2Mat(mat, np.array(stream.quat_site_sensor))
+    R_site_sensor = mat.reshape(3, 3)
+    values = m.values.copy()
+    for part, limit in ((slice(7, 10), stream.accel_range), (slice(4, 7), stream.gyro_range)):
+        v_sensor = values[:, 0, part] @ R_site_sensor  # rows: (R_site_sensorᵀ v_site)ᵀ
+        # the rail within rounding of the frame change
+        saturated = np.any(np.abs(v_sensor) >= limit * (1.0 - 1e-9), axis=1)
+        values[saturated, 0, part] = np.nan
+    return replace(m, values=values)
 
 
 def _known_forces(

@@ -445,7 +445,7 @@ def test_quadruped_imu_mounting_is_undone_by_its_config(runs):
     # the reader turns the readings into the site frame: compare with the model's gyro
     gyro = mujoco.mj_name2id(traj.model, mujoco.mjtObj.mjOBJ_SENSOR, "imu_gyro")
     gyro_adr = int(traj.model.sensor_adr[gyro])
-    gyro_site = traj.interpolate(traj.sensordata_vel[:, gyro_adr : gyro_adr + 3], truth["t_ns"])
+    gyro_site = traj.velocity(traj.sensordata_vel[:, gyro_adr : gyro_adr + 3], truth["t_ns"])
     rot = np.zeros(9)
     mujoco.mju_quat2Mat(rot, np.array(noise.quat_site_sensor))
     bias_site = truth["gyro_bias"] @ rot.reshape(3, 3).T

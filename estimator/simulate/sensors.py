@@ -8,9 +8,11 @@ messages timed as a recorder would see them:
     header.stamp t + clock offset + stamp jitter        (the sensor's clock; `Clock`)
     log_time     t + latency + latency jitter ≥ t       (when the recorder received it)
 
-Between simulation steps, positions and velocities are interpolated linearly (orientations by
-slerp) — exact for positions under the semi-implicit Euler step, which moves q linearly within
-a step — and accelerations and forces are held (the step's value, as the discrete-time
+Between simulation steps, positions are interpolated linearly (orientations by slerp): the
+semi-implicit Euler step q_{k+1} = q_k ⊕ h v_{k+1} moves q at the constant velocity v_{k+1}
+through (t_k, t_{k+1}], so positions are exact and velocities are held at v_{k+1} there (a
+gyro or encoder velocity then integrates to the motion); accelerations and forces are held
+at the step's value over [t_k, t_{k+1}) (a_k = (v_{k+1} − v_k)/h, as the discrete-time
 dynamics define them).
 
 Imperfection models (each a frozen dataclass with documented defaults):
@@ -107,6 +109,12 @@ class Trajectory:
         k, a = self._locate(t_ns)
         a = a.reshape((-1,) + (1,) * (states.ndim - 1))
         return (1.0 - a) * states[k] + a * states[k + 1]
+
+    def velocity(self, states: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
+        """A per-state velocity-stage array (N+1, ...) at times t_ns (n,) → (n, ...): the
+        value of state k + 1 through (t_k, t_{k+1}], the velocity q moves at in that step."""
+        s = np.asarray(t_ns, dtype=np.float64) / NS / self.h
+        return states[np.clip(np.ceil(s).astype(np.int64), 0, self.steps)]
 
     def slerp(self, quats: np.ndarray, t_ns: np.ndarray) -> np.ndarray:
         """Slerp of per-state unit quaternions (N+1, ..., 4) at times t_ns (n,) → (n, ..., 4)."""
@@ -623,6 +631,9 @@ class Imu:
         }
         if n.quat_site_sensor != _IDENTITY_WXYZ:
             table["quat_site_sensor"] = list(n.quat_site_sensor)
+        # the range per axis: the estimator leaves out saturated samples
+        table["accel_range"] = float(n.accel_range)
+        table["gyro_range"] = float(n.gyro_range)
         noise = _noise_table(
             gyro_std=n.gyro_std,
             accel_std=n.accel_std,
@@ -649,7 +660,7 @@ class Imu:
         count = len(t)
         # true signals in the sensor frame
         gyro_true = rotate_inverse(
-            n.quat_site_sensor, traj.interpolate(traj.sensordata_vel[:, gyro_adr], t)
+            n.quat_site_sensor, traj.velocity(traj.sensordata_vel[:, gyro_adr], t)
         )
         accel_true = rotate_inverse(
             n.quat_site_sensor, traj.hold(traj.sensordata_acc[:, accel_adr], t)
@@ -778,7 +789,7 @@ class Encoders:
         log_times = n.clock.log_times(t, rng)
         resolution = self.resolution(m)
         q_true = traj.interpolate(traj.qpos[:, qadr], t)
-        v_true = traj.interpolate(traj.qvel[:, dofadr], t)
+        v_true = traj.velocity(traj.qvel[:, dofadr], t)
         effort_true = traj.hold(traj.qfrc_actuator[:, dofadr], t)
         position = np.round(q_true / resolution) * resolution
         velocity = v_true + n.velocity_std * rng.standard_normal(v_true.shape)
