@@ -267,11 +267,16 @@ def run_suite(
 
 # -- the table ------------------------------------------------------------------------------------
 def _format(value: float | None) -> str:
+    """At most 7 characters: 3 significant digits, whole numbers from 100, e-notation
+    outside [1e-3, 1e4)."""
     if value is None:
         return "—"
-    if value == 0 or 1e-3 <= abs(value) < 1e4:
-        return f"{value:.3g}" if abs(value) >= 1 else f"{value:.3f}".rstrip("0").rstrip(".")
-    return f"{value:.1e}"
+    size = abs(value)
+    if value != 0 and not 1e-3 <= size < 1e4:
+        return f"{value:.1e}"
+    if size >= 100:
+        return f"{value:.0f}"
+    return f"{value:.3g}"
 
 
 def table(runs: Sequence[Run]) -> str:
