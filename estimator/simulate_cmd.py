@@ -4,7 +4,9 @@ Runs a bundled model under a controller (with a seeded model mismatch) and write
 a real robot could have produced — rosbag2 layout: profile `ros2`, `ros2msg` schemas, `cdr`
 messages, QoS metadata — with imperfect sensor topics and the true state under
 `/ground_truth/...` (see estimator/simulate/writer.py for the layout). `--config-out` writes
-the config that maps the sensor topics onto the model. The same seed gives the same file.
+the config that maps the sensor topics onto the model. `--condition` simulates the scenario
+under one of the conditions of estimator/simulate/conditions.py (nominal, occlusion, outliers,
+mismatch, no_commands). The same seed gives the same file.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from estimator.simulate import SCENARIOS, SimulationError, scenario_config, simulate
+from estimator.simulate.conditions import CONDITIONS, with_condition
 from estimator.simulate.scenarios import get_scenario
 
 
@@ -40,11 +43,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--no-mismatch", action="store_true", help="simulate the nominal model exactly"
     )
+    parser.add_argument(
+        "--condition",
+        metavar="NAME",
+        help=(  # argparse formats help with %: escape the percentages
+            "simulate under a condition: "
+            + "; ".join(f"{name}: {text}" for name, text in CONDITIONS.items())
+            + " (default: the scenario as its sample recording)"
+        ).replace("%", "%%"),
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bars or summary")
 
 
 def run(args: argparse.Namespace) -> int:
     scenario = get_scenario(args.scenario)
+    if args.condition is not None:
+        if args.condition == "mismatch" and args.no_mismatch:
+            raise SimulationError("--condition mismatch contradicts --no-mismatch")
+        scenario = with_condition(scenario, args.condition)
     if args.ground_truth_every is not None:
         if args.ground_truth_every < 1:
             raise SimulationError(

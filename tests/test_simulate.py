@@ -38,6 +38,7 @@ from estimator.simulate import (
     state_data,
     write_state,
 )
+from estimator.simulate.conditions import CONDITIONS, OUTLIER_PROBABILITY, with_condition
 from estimator.simulate.controllers import Push
 from estimator.simulate.mismatch import Mismatch
 from estimator.simulate.sensors import (
@@ -549,6 +550,118 @@ def test_rerun_imports_the_log(runs):
     assert any("InstancePoses3D" in c for c in columns["/mocap/torso/pose"])
 
 
+# -- conditions ------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def humanoid_conditions(tmp_path_factory) -> dict[str, Run]:
+    """humanoid_push, 3 s, seed 0, under the conditions that keep its true motion."""
+    folder = tmp_path_factory.mktemp("conditions")
+    out = {}
+    for condition in ("nominal", "occlusion", "outliers", "no_commands"):
+        log, config = folder / f"{condition}.mcap", folder / f"{condition}.toml"
+        scenario = with_condition(get_scenario("humanoid_push"), condition)
+        config.write_text(scenario_config(scenario))
+        out[condition] = Run(simulate(scenario, log, seed=0, duration_s=3.0), log, config)
+    return out
+
+
+def _mocap_times_s(run: Run, stream: str) -> np.ndarray:
+    measurement = read_log(run.log, load_config(run.config)).measurements[stream]
+    return (measurement.t_ns - run.result.trajectory.t0_ns) / NS
+
+
+def test_nominal_has_no_mocap_gaps_or_outliers_and_the_same_motion(humanoid_conditions):
+    nominal = humanoid_conditions["nominal"]
+    truth = nominal.result.sensors["mocap"]
+    assert truth["visible"].all() and not truth["outlier"].any()
+    for label in ("torso", "pelvis", "left_foot", "right_foot"):
+        assert np.diff(_mocap_times_s(nominal, f"mocap_{label}")).max() < 1.5 / 120.0
+    assert _metadata(nominal.log)["physfuse.condition"]["name"] == "nominal"
+    for run in humanoid_conditions.values():  # the conditions change the sensors, not the robot
+        np.testing.assert_array_equal(run.result.trajectory.qpos, nominal.result.trajectory.qpos)
+
+
+def test_occlusion_hides_one_body_for_02_to_1_s_several_times(humanoid_conditions):
+    run = humanoid_conditions["occlusion"]
+    intervals = run.result.sensors["mocap"]["occlusions"]
+    assert len(intervals) == 2  # (3 s - 2 × 0.25 s margin) // 1.25 s
+    lengths = intervals[:, 1] - intervals[:, 0]
+    assert np.all((lengths >= 0.2) & (lengths <= 1.0))
+    recorded = json.loads(_metadata(run.log)["physfuse.condition"]["occlusions_s"])
+    np.testing.assert_allclose(recorded["mocap"], intervals)
+    torso = _mocap_times_s(run, "mocap_torso")
+    for start, end in intervals:  # a gap in the log spans each occlusion
+        assert not np.any((torso >= start + 0.001) & (torso < end - 0.001))
+        assert np.diff(torso).max() >= end - start
+    gaps = np.diff(torso)
+    assert np.sum(gaps > 2.5 / 120.0) == len(intervals)
+    for label in ("pelvis", "left_foot", "right_foot"):  # the other bodies stay in view
+        assert np.diff(_mocap_times_s(run, f"mocap_{label}")).max() < 1.5 / 120.0
+
+
+def test_occlusion_hides_every_marker_of_the_box(tmp_path):
+    scenario = with_condition(get_scenario("arm_box"), "occlusion")
+    log, config = tmp_path / "box.mcap", tmp_path / "box.toml"
+    config.write_text(scenario_config(scenario))
+    result = simulate(scenario, log, seed=1, duration_s=1.5)
+    ((start, end),) = result.sensors["markers"]["occlusions"]
+    assert 0.2 <= end - start <= 1.0
+    markers = read_log(log, load_config(config)).measurements["markers"]
+    t = (markers.t_ns - result.trajectory.t0_ns) / NS
+    assert not np.any((t >= start + 0.001) & (t < end - 0.001))
+    assert np.isfinite(markers.values).all()  # outside the occlusion every marker is seen
+
+
+def test_outliers_condition_jumps_2_percent_of_frames_by_centimetres(humanoid_conditions):
+    run = humanoid_conditions["outliers"]
+    truth = run.result.sensors["mocap"]
+    rate = truth["outlier"].mean()  # 360 frames × 4 bodies: 2% ± 0.4% (1σ)
+    assert abs(rate - OUTLIER_PROBABILITY) < 0.01
+    torso = read_log(run.log, load_config(run.config)).measurements["mocap_torso"]
+    error = np.linalg.norm(torso.values[:, 0, :3] - truth["position"][:, 0], axis=1)
+    flagged = truth["outlier"][:, 0]
+    assert flagged.any() and error[flagged].min() > 0.03 - 0.003
+    assert error[~flagged].max() < 0.003
+    assert truth["visible"].all()  # nominal's: no dropouts
+
+
+def test_mismatch_condition_is_exactly_10_percent_mass_and_30_percent_friction(tmp_path):
+    log = tmp_path / "mismatch.mcap"
+    assert main(["simulate", "humanoid_push", "--condition", "mismatch", "--out", str(log),
+                 "--duration", "0.1", "--quiet"]) == 0  # fmt: skip
+    meta = _metadata(log)
+    assert json.loads(meta["physfuse.simulation"]["mismatch"])["signed"] is True
+    masses = json.loads(meta["physfuse.mismatch"]["body_mass"])
+    ratios = np.array([true / nominal for nominal, true in masses.values()])
+    np.testing.assert_allclose(np.abs(ratios - 1.0), 0.10, rtol=1e-12)
+    assert (ratios > 1).any() and (ratios < 1).any()
+    frictions = json.loads(meta["physfuse.mismatch"]["geom_friction"])
+    ratios = np.array([true / nominal for nominal, true in frictions.values()])
+    np.testing.assert_allclose(np.abs(ratios - 1.0), 0.30, rtol=1e-12)
+    assert (ratios > 1).any() and (ratios < 1).any()
+
+
+def test_no_commands_log_has_no_command_topic_and_its_config_no_command_stream(
+    humanoid_conditions,
+):
+    run = humanoid_conditions["no_commands"]
+    assert "/joint_commands" not in run.result.topics
+    assert "/joint_commands" in humanoid_conditions["nominal"].result.topics
+    config = load_config(run.config)
+    assert "command" not in {stream.kind for stream in config.streams.values()}
+    assert "--condition no_commands" in run.config.read_text()
+    assert set(read_log(run.log, config).measurements) == {
+        "mocap_torso", "mocap_pelvis", "mocap_left_foot", "mocap_right_foot", "imu", "joints"
+    }  # fmt: skip
+
+
+def test_every_condition_is_documented_on_the_command_line(capsys):
+    with pytest.raises(SystemExit):
+        main(["simulate", "--help"])
+    out, _ = capsys.readouterr()
+    for condition in CONDITIONS:
+        assert condition in out
+
+
 # -- the command line ------------------------------------------------------------------------------
 def test_cli_writes_the_log_and_its_config(tmp_path, capsys):
     log, config = tmp_path / "sj.mcap", tmp_path / "sj.toml"
@@ -572,6 +685,11 @@ def test_cli_writes_the_log_and_its_config(tmp_path, capsys):
         (["single_joint", "--duration", "-1"], "--duration -1.0: expected a positive"),
         (["single_joint", "--ground-truth-every", "0"], "--ground-truth-every 0: expected"),
         (["single_joint", "--seed", "-3"], "seed -3: expected a non-negative integer"),
+        (["single_joint", "--condition", "rain"], "unknown condition 'rain'; valid conditions: "),
+        (
+            ["single_joint", "--condition", "mismatch", "--no-mismatch"],
+            "--condition mismatch contradicts --no-mismatch",
+        ),
     ],
 )
 def test_cli_rejects_bad_arguments_in_one_line(tmp_path, capsys, argv, message):

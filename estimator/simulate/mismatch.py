@@ -13,6 +13,9 @@ every quantity positive:
     geom_friction[g, 0] *= exp(σ_μ z_g)   (sliding friction; also explicit pairs' friction)
     softness ε, κ       *= exp(σ_s z_ε), exp(σ_s z_κ)   (κ kept ≥ 2h, MuJoCo's refsafe floor)
 
+`SignedMismatch` instead sets each factor to exactly 1 ± σ, the sign that of the same draw z
+(the `mismatch` condition of `physfuse simulate`: masses ±10%, friction ±30%).
+
 Derived constants (subtree masses, the inverse weights behind MuJoCo's regularizer) are
 recomputed with `mj_setConst`.
 """
@@ -78,6 +81,10 @@ class Mismatch:
         """The simulated robot is exactly the model."""
         return cls(0.0, 0.0, 0.0, 0.0)
 
+    def factor(self, sigma: float, z: np.ndarray | float) -> np.ndarray:
+        """The multiplicative perturbation exp(σ z) of standard normal draw(s) z."""
+        return np.exp(sigma * np.asarray(z))
+
     def apply(
         self,
         model: mujoco.MjModel,
@@ -103,9 +110,11 @@ class Mismatch:
             if model.body_mass[b] <= 0:
                 continue
             name = _name(model, mujoco.mjtObj.mjOBJ_BODY, b)
-            scale = float(np.exp(self.mass_rel_std * z_mass[b]))
+            scale = float(self.factor(self.mass_rel_std, z_mass[b]))
             true.body_mass[b] = model.body_mass[b] * scale
-            moments = model.body_inertia[b] * scale * np.exp(self.inertia_rel_std * z_inertia[b])
+            moments = (
+                model.body_inertia[b] * scale * self.factor(self.inertia_rel_std, z_inertia[b])
+            )
             if not _triangle(moments):
                 moments = model.body_inertia[b] * scale
             true.body_inertia[b] = moments
@@ -122,21 +131,21 @@ class Mismatch:
             for g in range(model.ngeom):
                 if not (model.geom_contype[g] or model.geom_conaffinity[g]):
                     continue
-                true.geom_friction[g, 0] *= np.exp(self.friction_rel_std * z_friction[g])
+                true.geom_friction[g, 0] *= self.factor(self.friction_rel_std, z_friction[g])
                 frictions[_name(model, mujoco.mjtObj.mjOBJ_GEOM, g)] = (
                     float(model.geom_friction[g, 0]),
                     float(true.geom_friction[g, 0]),
                 )
             for p in range(model.npair):
-                factor = np.exp(self.friction_rel_std * z_friction[model.ngeom + p])
+                factor = self.factor(self.friction_rel_std, z_friction[model.ngeom + p])
                 true.pair_friction[p, :2] *= factor
                 frictions[f"pair:{_name(model, mujoco.mjtObj.mjOBJ_PAIR, p)}"] = (
                     float(model.pair_friction[p, 0]),
                     float(true.pair_friction[p, 0]),
                 )
 
-        eps = nominal.eps * float(np.exp(self.softness_rel_std * z_soft[0]))
-        kappa = nominal.kappa * float(np.exp(self.softness_rel_std * z_soft[1]))
+        eps = nominal.eps * float(self.factor(self.softness_rel_std, z_soft[0]))
+        kappa = nominal.kappa * float(self.factor(self.softness_rel_std, z_soft[1]))
         kappa = max(kappa, 2.0 * float(model.opt.timestep))
         true_softness = Softness(
             eps=eps, kappa=kappa, r_min=nominal.r_min, impratio=nominal.impratio
@@ -148,6 +157,21 @@ class Mismatch:
         mujoco.mj_setConst(true, mujoco.MjData(true))
         record = MismatchRecord(masses, inertias, frictions, soft)
         return true, true_softness, record
+
+
+@dataclass(frozen=True)
+class SignedMismatch(Mismatch):
+    """Every quantity off by exactly its σ: factor 1 + σ·sign(z), the sign drawn per body,
+    moment, geom and softness parameter (the same draws, in the same order, as `Mismatch`).
+
+    signed: marks the record in the log's metadata (`physfuse.simulation` "mismatch").
+    """
+
+    signed: bool = True
+
+    def factor(self, sigma: float, z: np.ndarray | float) -> np.ndarray:
+        """1 + σ·sign(z): a perturbation of exactly ±σ (z = 0 counts as +)."""
+        return 1.0 + sigma * np.where(np.asarray(z) < 0.0, -1.0, 1.0)
 
 
 def _triangle(moments: np.ndarray) -> bool:

@@ -23,6 +23,8 @@ Sensors (rates are defaults; see `sensors.py` for every imperfection):
     single_joint    mocap pose of the arm's tip (100 Hz), encoder (500 Hz), commands (500 Hz)
 
 Every scenario perturbs its model (`Mismatch()` defaults) unless asked not to.
+`conditions.with_condition` turns a scenario into a variant (nominal, occlusion, outliers,
+mismatch, no_commands).
 """
 
 from __future__ import annotations
@@ -79,6 +81,7 @@ class Scenario:
     pushes: draws the external pushes. sensors: in the order they draw random numbers.
     mismatch: how the simulated robot differs from the model. keyframe: the initial state.
     ground_truth_decimation: write ground truth every this many steps (1: every step).
+    condition: the `conditions.CONDITIONS` name this variant was made under (None: as defined).
     """
 
     name: str
@@ -91,6 +94,7 @@ class Scenario:
     mismatch: Mismatch = field(default_factory=Mismatch)
     keyframe: str = "home"
     ground_truth_decimation: int = 1
+    condition: str | None = None
 
     def topics(self) -> dict[str, str]:
         """Sensor topic → message type."""

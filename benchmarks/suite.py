@@ -1,0 +1,621 @@
+"""The benchmark suite: the physics smoother against the baselines, scenario × condition.
+
+    python benchmarks/suite.py [--out DIR] [--work DIR] [--scenarios NAME ...]
+        [--conditions NAME ...] [--methods NAME ...] [--duration S] [--seed N] [--jobs N]
+        [--timeout S]
+
+For every scenario and condition (`physfuse simulate SCENARIO --condition CONDITION`,
+estimator/simulate/conditions.py) it simulates a log with ground truth (cached in
+WORK/logs by scenario, condition, seed and duration), then for every method runs
+
+    physfuse estimate LOG --config CONFIG --out RUN --method METHOD --quiet
+    physfuse evaluate RUN/estimate.mcap --truth LOG --config CONFIG --out RUN
+
+each as a subprocess with a time limit; a step that fails becomes a "failed: <its last
+error line>" entry instead of stopping the suite. It prints one table (scenario × condition
+× method rows, the metrics of `metrics.json`'s "summary" and wall time / log duration as
+columns), then the checklist of the targets:
+
+    1. on every scenario and condition the physics smoother's position, orientation,
+       joint-angle and velocity errors are lower than every baseline's;
+    2. during mocap occlusions its position and orientation errors are at most a third of
+       the kinematic smoother's;
+    3. in nominal conditions its net contact force error is at most 10% of the robot's weight.
+
+It writes OUT/suite.json (settings, every run with its metrics and errors, the checklist),
+OUT/suite.txt (the printed table and checklist) and one PNG per metric (OUT/<metric>.png:
+grouped bars, method × (scenario, condition), log scale).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from estimator.simulate import SCENARIOS  # noqa: E402
+from estimator.simulate.conditions import CONDITIONS  # noqa: E402
+
+PHYSFUSE = [sys.executable, "-m", "estimator.cli"]
+METHODS = ("physics", "kinematic", "ekf", "ukf", "raw")
+BASELINES = ("kinematic", "ekf", "ukf", "raw")
+DURATION_S = 4.0  # ≥ 3 s: two occlusions; the whole suite in ~15 min on 2 cores (README)
+TIMEOUT_S = 600.0
+
+# metric key of metrics.json "summary" → (column header, lower is better)
+METRICS: Mapping[str, tuple[str, bool]] = {
+    "position_mm": ("pos mm", True),
+    "orientation_deg": ("rot °", True),
+    "joint_deg": ("joint °", True),
+    "linear_velocity_mps": ("v m/s", True),
+    "angular_velocity_dps": ("ω °/s", True),
+    "joint_velocity_dps": ("q̇ °/s", True),
+    "contact_force_N": ("F N", True),
+    "contact_force_pct_weight": ("F %mg", True),
+    "contact_precision": ("c.prec", False),
+    "contact_recall": ("c.rec", False),
+    "imu_accel_bias_mps2": ("ba m/s²", True),
+    "imu_gyro_bias_dps": ("bg °/s", True),
+    "occluded_position_mm": ("occ mm", True),
+    "occluded_orientation_deg": ("occ °", True),
+    "occluded_s": ("occ s", True),
+    "wall_over_duration": ("wall/T", True),
+}
+BEATS_BASELINES = (
+    "position_mm",
+    "orientation_deg",
+    "joint_deg",
+    "linear_velocity_mps",
+    "angular_velocity_dps",
+    "joint_velocity_dps",
+)
+OCCLUDED = ("occluded_position_mm", "occluded_orientation_deg")
+OCCLUSION_RATIO = 1.0 / 3.0  # physics ≤ this × kinematic during occlusions
+FORCE_PCT_WEIGHT = 10.0  # physics net contact force RMSE ≤ this % of m·g, nominal condition
+
+
+@dataclass
+class Run:
+    """One method on one log: where it ran, its metrics summary, or why it failed."""
+
+    scenario: str
+    condition: str
+    method: str
+    metrics: dict[str, float | None] = field(default_factory=dict)
+    error: str | None = None
+    wall_time_s: float | None = None  # estimation alone (summary.json)
+    duration_s: float | None = None  # the estimated log (summary.json)
+    process_s: float = 0.0  # both subprocesses, start-up and writing included
+    folder: str = ""
+    reused: bool = False  # metrics from an earlier run (--reuse-runs)
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return self.scenario, self.condition
+
+
+# -- running ----------------------------------------------------------------------------------
+def call(argv: Sequence[str], timeout_s: float, transcript: Path) -> str | None:
+    """Run `physfuse argv`; None when it succeeded, else one line saying why not.
+
+    Its stdout and stderr go to `transcript`."""
+    try:
+        proc = subprocess.run(
+            [*PHYSFUSE, *argv], cwd=ROOT, capture_output=True, text=True, timeout=timeout_s
+        )
+    except subprocess.TimeoutExpired:
+        return f"timed out after {timeout_s:g} s: physfuse {argv[0]}"
+    except OSError as err:
+        return f"cannot run physfuse {argv[0]}: {err}"
+    with transcript.open("a") as f:
+        f.write(f"$ physfuse {' '.join(argv)}\n{proc.stdout}{proc.stderr}\n")
+    if proc.returncode == 0:
+        return None
+    lines = [line.strip() for line in (proc.stderr or proc.stdout).splitlines() if line.strip()]
+    return lines[-1] if lines else f"physfuse {argv[0]} exited with status {proc.returncode}"
+
+
+def simulate_log(
+    scenario: str, condition: str, seed: int, duration_s: float, logs: Path, timeout_s: float
+) -> tuple[Path, Path, str | None]:
+    """The cached log and config of (scenario, condition, seed, duration); simulated if absent."""
+    stem = f"{scenario}-{condition}-seed{seed}-{duration_s:g}s"
+    log, config = logs / f"{stem}.mcap", logs / f"{stem}.toml"
+    if log.exists() and config.exists():
+        return log, config, None
+    partial_log, partial_config = logs / f"{stem}.partial.mcap", logs / f"{stem}.partial.toml"
+    argv = [
+        "simulate", scenario, "--condition", condition, "--seed", str(seed),
+        "--duration", f"{duration_s:g}", "--out", str(partial_log),
+        "--config-out", str(partial_config), "--quiet",
+    ]  # fmt: skip
+    error = call(argv, timeout_s, logs / f"{stem}.txt")
+    if error is None:  # only a complete log enters the cache
+        partial_config.replace(config)
+        partial_log.replace(log)
+    return log, config, error
+
+
+def estimate_and_evaluate(
+    run: Run,
+    log: Path,
+    config: Path,
+    folder: Path,
+    timeout_s: float,
+    method_flag: bool,
+    reuse: bool = False,
+) -> Run:
+    """`physfuse estimate` then `physfuse evaluate` into `folder`; fills `run`.
+
+    reuse: keep the folder's summary.json and metrics.json when both are newer than the log.
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    run.folder = str(folder)
+    summary_path, metrics_path = folder / "summary.json", folder / "metrics.json"
+    start = time.perf_counter()
+    if reuse and all(
+        p.exists() and p.stat().st_mtime > log.stat().st_mtime for p in (summary_path, metrics_path)
+    ):
+        run.reused = True
+    else:
+        summary_path.unlink(missing_ok=True)
+        metrics_path.unlink(missing_ok=True)
+        transcript = folder / "transcript.txt"
+        transcript.write_text("")
+        argv = ["estimate", str(log), "--config", str(config), "--out", str(folder), "--quiet"]
+        if method_flag:
+            argv += ["--method", run.method]
+        elif run.method != "physics":
+            run.error = "physfuse estimate has no --method option (only the physics smoother)"
+            return run
+        run.error = call(argv, timeout_s, transcript)
+        if run.error is None:
+            argv = [
+                "evaluate", str(folder / "estimate.mcap"), "--truth", str(log),
+                "--config", str(config), "--out", str(folder),
+            ]  # fmt: skip
+            run.error = call(argv, timeout_s, transcript)
+    run.process_s = time.perf_counter() - start
+    if run.error is None:
+        try:
+            summary = json.loads(summary_path.read_text())
+            metrics = json.loads(metrics_path.read_text())["summary"]
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            run.error = f"cannot read {folder}/summary.json or metrics.json: {err}"
+            return run
+        run.wall_time_s, run.duration_s = summary.get("wall_time_s"), summary.get("duration_s")
+        run.metrics = {k: _number(metrics.get(k)) for k in METRICS if k in metrics}
+        if run.wall_time_s is not None and run.duration_s:
+            run.metrics["wall_over_duration"] = run.wall_time_s / run.duration_s
+    return run
+
+
+def _number(value: Any) -> float | None:
+    """A finite float, or None (null, NaN)."""
+    if value is None or isinstance(value, bool):
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def estimate_has_method_option() -> bool:
+    """Whether `physfuse estimate` takes --method (before it did, it ran physics only)."""
+    proc = subprocess.run(
+        [*PHYSFUSE, "estimate", "--help"], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+    return "--method" in proc.stdout
+
+
+def run_suite(
+    scenarios: Sequence[str],
+    conditions: Sequence[str],
+    methods: Sequence[str],
+    duration_s: float,
+    seed: int,
+    jobs: int,
+    timeout_s: float,
+    work: Path,
+    reuse: bool = False,
+    say: Callable[[str], None] = print,
+) -> list[Run]:
+    """Simulate every (scenario, condition) log, then estimate and evaluate every method."""
+    logs = work / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    pairs = [(s, c) for s in scenarios for c in conditions]
+    with ThreadPoolExecutor(jobs) as pool:
+        simulated = dict(
+            zip(
+                pairs,
+                pool.map(
+                    lambda p: simulate_log(p[0], p[1], seed, duration_s, logs, timeout_s), pairs
+                ),
+                strict=True,
+            )
+        )
+        method_flag = estimate_has_method_option()
+
+        def one(key: tuple[str, str, str]) -> Run:
+            scenario, condition, method = key
+            run = Run(scenario, condition, method)
+            log, config, error = simulated[scenario, condition]
+            if error is not None:
+                run.error = f"simulate: {error}"
+                return run
+            folder = work / "runs" / scenario / condition / method
+            run = estimate_and_evaluate(run, log, config, folder, timeout_s, method_flag, reuse)
+            status = f"failed: {run.error}" if run.error else f"{run.process_s:.0f} s"
+            status += " (reused)" if run.reused else ""
+            say(f"  {scenario:15s} {condition:12s} {method:10s} {status}")
+            return run
+
+        keys = [(s, c, m) for s, c in pairs for m in methods]
+        return list(pool.map(one, keys))
+
+
+# -- the table ------------------------------------------------------------------------------------
+def _format(value: float | None) -> str:
+    """At most 7 characters: 3 significant digits, whole numbers from 100, e-notation
+    outside [1e-3, 1e4)."""
+    if value is None:
+        return "—"
+    size = abs(value)
+    if value != 0 and not 1e-3 <= size < 1e4:
+        return f"{value:.1e}"
+    if size >= 100:
+        return f"{value:.0f}"
+    return f"{value:.3g}"
+
+
+def table(runs: Sequence[Run]) -> str:
+    """One row per run (scenario, condition, method); a column per metric with any value."""
+    columns = [k for k in METRICS if any(r.metrics.get(k) is not None for r in runs)]
+    width = 8
+    head = f"{'scenario':15s} {'condition':12s} {'method':10s}"
+    lines = [head + "".join(f"{METRICS[k][0]:>{width}s}" for k in columns)]
+    lines.append("-" * len(lines[0]))
+    previous: tuple[str, str] | None = None
+    for r in runs:
+        if previous is not None and r.key != previous:
+            lines.append("")
+        previous = r.key
+        row = f"{r.scenario:15s} {r.condition:12s} {r.method:10s}"
+        if r.error:
+            row += "  failed: " + r.error
+        else:
+            row += "".join(f"{_format(r.metrics.get(k)):>{width}s}" for k in columns)
+        lines.append(row)
+    return "\n".join(lines)
+
+
+# -- the targets ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Check:
+    """One target on one (scenario, condition): PASS, MISS or N/A (not measurable), and why."""
+
+    target: str
+    scenario: str
+    condition: str
+    status: str
+    detail: str
+    items: tuple[dict[str, Any], ...] = ()
+
+
+def _by_method(runs: Iterable[Run]) -> dict[tuple[str, str], dict[str, Run]]:
+    out: dict[tuple[str, str], dict[str, Run]] = {}
+    for r in runs:
+        out.setdefault(r.key, {})[r.method] = r
+    return out
+
+
+def _aggregate(target: str, key: tuple[str, str], items: list[dict[str, Any]]) -> Check | None:
+    """The worst status of the items; the detail names the misses (or the closest pass, or
+    what could not be measured)."""
+    if not items:
+        return None
+    statuses = [i["status"] for i in items]
+    status = "MISS" if "MISS" in statuses else "N/A" if "N/A" in statuses else "PASS"
+    shown = [i for i in items if i["status"] == status]
+    if status == "PASS":  # the closest call
+        shown = [max(shown, key=lambda i: i["ratio"] or 0.0)]
+    if status == "N/A":  # one line per reason: "joint_deg, joint_velocity_dps: ekf failed"
+        reasons = dict.fromkeys(i["detail"] for i in shown)
+        metrics = {r: ", ".join(i["metric"] for i in shown if i["detail"] == r) for r in reasons}
+        detail = "; ".join(f"{metrics[r]}: {r}" for r in reasons)
+    else:
+        detail = "; ".join(i["detail"] for i in shown)
+    return Check(target, key[0], key[1], status, detail, tuple(items))
+
+
+def check_beats_baselines(runs: Sequence[Run]) -> list[Check]:
+    """Target 1: physics < every baseline's error on each metric of BEATS_BASELINES."""
+    target = "physics beats every baseline (position, orientation, joints, velocities)"
+    checks = []
+    for key, by in _by_method(runs).items():
+        physics = by.get("physics")
+        baselines = [by[m] for m in BASELINES if m in by]
+        if physics is None or not baselines:
+            continue
+        items = []
+        for metric in BEATS_BASELINES:
+            if physics.error:
+                items.append(_item(metric, "N/A", f"physics failed: {physics.error}"))
+                continue
+            p = physics.metrics.get(metric)
+            values: dict[str, float] = {
+                b.method: v
+                for b in baselines
+                if not b.error and (v := b.metrics.get(metric)) is not None
+            }
+            failed = [b.method for b in baselines if b.error]
+            if p is None:
+                if values:
+                    items.append(_item(metric, "N/A", "physics has no value"))
+                continue
+            if not values and not failed:
+                continue  # no baseline measures it: not applicable
+            best = min(values, key=lambda m: values[m]) if values else None
+            if best is not None and p >= values[best]:
+                ratio = p / values[best] if values[best] > 0 else None
+                shown = f"{ratio:.2f}×" if ratio is not None else f"{best} exact"
+                detail = f"{metric} {_format(p)} vs {best} {_format(values[best])} ({shown})"
+                items.append(_item(metric, "MISS", detail, p, best, values[best], ratio))
+            elif failed:
+                items.append(_item(metric, "N/A", f"{', '.join(failed)} failed", p))
+            else:
+                assert best is not None
+                ratio = p / values[best]
+                detail = f"{metric} {_format(p)} vs {best} {_format(values[best])} ({ratio:.2f}×)"
+                items.append(_item(metric, "PASS", detail, p, best, values[best], ratio))
+        check = _aggregate(target, key, items)
+        if check is not None:
+            checks.append(check)
+    return checks
+
+
+def check_occlusion(runs: Sequence[Run]) -> list[Check]:
+    """Target 2: during occlusions physics ≤ OCCLUSION_RATIO × the kinematic smoother."""
+    target = "occluded error ≤ 1/3 of the kinematic smoother's"
+    checks = []
+    for key, by in _by_method(runs).items():
+        physics, kinematic = by.get("physics"), by.get("kinematic")
+        if physics is None or kinematic is None:
+            continue
+        occluded = [(r.metrics.get("occluded_s") or 0.0) for r in (physics, kinematic)]
+        if not physics.error and not kinematic.error and max(occluded) <= 0:
+            continue  # no occlusion in this log
+        if key[1] != "occlusion" and (physics.error or kinematic.error):
+            continue  # cannot tell whether it had occlusions; the occlusion condition does
+        items = []
+        for metric in OCCLUDED:
+            if physics.error or kinematic.error:
+                who = "physics" if physics.error else "kinematic"
+                items.append(_item(metric, "N/A", f"{who} failed"))
+                continue
+            p, k = physics.metrics.get(metric), kinematic.metrics.get(metric)
+            if p is None or k is None:
+                continue
+            ratio = p / k if k > 0 else None
+            status = "PASS" if p <= OCCLUSION_RATIO * k else "MISS"
+            shown = f"{ratio:.2f}×" if ratio is not None else "kinematic exact"
+            detail = f"{metric} {_format(p)} vs kinematic {_format(k)} ({shown}, target ≤ 0.33×)"
+            items.append(_item(metric, status, detail, p, "kinematic", k, ratio))
+        check = _aggregate(target, key, items)
+        if check is not None:
+            checks.append(check)
+    return checks
+
+
+def check_contact_force(runs: Sequence[Run]) -> list[Check]:
+    """Target 3: nominal condition, physics net contact force RMSE ≤ FORCE_PCT_WEIGHT % of m·g."""
+    target = f"net contact force error ≤ {FORCE_PCT_WEIGHT:g}% of the weight (nominal)"
+    checks = []
+    for r in runs:
+        if r.method != "physics" or r.condition != "nominal":
+            continue
+        metric = "contact_force_pct_weight"
+        if r.error:
+            items = [_item(metric, "N/A", f"physics failed: {r.error}")]
+        elif (value := r.metrics.get(metric)) is None:
+            continue  # no contacts to estimate
+        else:
+            ratio = value / FORCE_PCT_WEIGHT
+            status = "PASS" if value <= FORCE_PCT_WEIGHT else "MISS"
+            detail = f"{_format(value)}% of m·g ({ratio:.2f}× the limit)"
+            items = [_item(metric, status, detail, value, None, FORCE_PCT_WEIGHT, ratio)]
+        check = _aggregate(target, r.key, items)
+        if check is not None:
+            checks.append(check)
+    return checks
+
+
+def _item(
+    metric: str,
+    status: str,
+    detail: str,
+    physics: float | None = None,
+    against: str | None = None,
+    reference: float | None = None,
+    ratio: float | None = None,
+) -> dict[str, Any]:
+    return {
+        "metric": metric,
+        "status": status,
+        "detail": detail,
+        "physics": physics,
+        "against": against,
+        "reference": reference,
+        "ratio": ratio,
+    }
+
+
+def checklist(runs: Sequence[Run]) -> list[Check]:
+    return check_beats_baselines(runs) + check_occlusion(runs) + check_contact_force(runs)
+
+
+def checklist_text(checks: Sequence[Check]) -> str:
+    lines = ["targets:"]
+    target = None
+    for c in checks:
+        if c.target != target:
+            target = c.target
+            lines.append(f"  {target}")
+        lines.append(f"    [{c.status:4s}] {c.scenario}/{c.condition}: {c.detail}")
+    counts = {s: sum(c.status == s for c in checks) for s in ("PASS", "MISS", "N/A")}
+    lines.append("  " + ", ".join(f"{s} {n}" for s, n in counts.items()))
+    return "\n".join(lines)
+
+
+# -- plots ----------------------------------------------------------------------------------------
+def plot(runs: Sequence[Run], out: Path) -> list[Path]:
+    """One PNG per metric: a panel per scenario, a group of bars per condition, a bar per
+    method (log scale; precision and recall linear). × marks a method that failed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    scenarios = list(dict.fromkeys(r.scenario for r in runs))
+    conditions = list(dict.fromkeys(r.condition for r in runs))
+    methods = list(dict.fromkeys(r.method for r in runs))
+    by_key = {(r.scenario, r.condition, r.method): r for r in runs}
+    palette = plt.get_cmap("tab10")
+    colors = {m: palette(i % 10) for i, m in enumerate(methods)}
+    width = 0.8 / len(methods)
+    paths = []
+    for metric, (label, lower_is_better) in METRICS.items():
+        values = [r.metrics.get(metric) for r in runs if not r.error]
+        if not any(v is not None and v > 0 for v in values):
+            continue
+        bars = len(scenarios) * len(conditions) * len(methods)
+        fig, axes = plt.subplots(
+            1,
+            len(scenarios),
+            sharey=True,
+            squeeze=False,
+            figsize=(max(8.0, 2.0 + 0.18 * bars), 4.5),
+        )
+        for ax, scenario in zip(axes[0], scenarios, strict=True):
+            for i, method in enumerate(methods):
+                for j, condition in enumerate(conditions):
+                    run = by_key.get((scenario, condition, method))
+                    x = j + (i - (len(methods) - 1) / 2) * width
+                    if run is not None and run.error:
+                        ax.text(x, 0.01, "×", transform=ax.get_xaxis_transform(),
+                                ha="center", color=colors[method], fontsize=8)  # fmt: skip
+                        continue
+                    y = run.metrics.get(metric) if run is not None else None
+                    if y is not None and y > 0:
+                        ax.bar(x, y, width, color=colors[method])
+            ax.set_title(scenario, fontsize=9)
+            ax.set_xlim(-0.5, len(conditions) - 0.5)
+            ax.set_xticks(range(len(conditions)))
+            ax.set_xticklabels(conditions, fontsize=7, rotation=30, ha="right")
+            ax.grid(axis="y", alpha=0.3)
+        if metric in ("contact_precision", "contact_recall"):
+            axes[0, 0].set_ylim(0.0, 1.05)
+        else:  # bars start well below the smallest, so their heights compare by ratio
+            axes[0, 0].set_yscale("log")
+            smallest = min(v for v in values if v is not None and v > 0)
+            largest = max(v for v in values if v is not None)
+            axes[0, 0].set_ylim(min(smallest / 3.0, largest / 30.0), largest * 1.5)
+        axes[0, 0].set_ylabel(label)
+        handles = [Patch(color=colors[m], label=m) for m in methods]
+        better = "lower" if lower_is_better else "higher"
+        fig.suptitle(f"{metric} ({better} is better; × failed)", fontsize=10)
+        fig.legend(handles=handles, loc="lower center", ncols=len(methods), fontsize=8)
+        fig.tight_layout(rect=(0.0, 0.06, 1.0, 1.0))
+        path = out / f"{metric}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+# -- main -----------------------------------------------------------------------------------------
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("out/suite"), help="results folder")
+    parser.add_argument(
+        "--work",
+        type=Path,
+        default=Path("out/suite/work"),
+        help="where the logs (cached) and the runs' outputs go",
+    )
+    parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=SCENARIOS)
+    parser.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=CONDITIONS)
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--duration", type=float, default=DURATION_S, help="log length, s")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--jobs", type=int, default=1, help="runs in parallel")
+    parser.add_argument("--timeout", type=float, default=TIMEOUT_S, help="per step, s")
+    parser.add_argument(
+        "--reuse-runs",
+        action="store_true",
+        help="keep the metrics of runs already in WORK (newer than their log): re-tabulate",
+    )
+    args = parser.parse_args(argv)
+    if not args.duration > 0 or args.jobs < 1 or args.timeout <= 0:
+        parser.error("--duration and --timeout must be positive, --jobs at least 1")
+    work = args.work.resolve()  # the subprocesses run in the repository root
+    args.out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    print(
+        f"suite: {len(args.scenarios)} scenarios × {len(args.conditions)} conditions × "
+        f"{len(args.methods)} methods, {args.duration:g} s logs, {args.jobs} job(s); {work}"
+    )
+    runs = run_suite(
+        args.scenarios,
+        args.conditions,
+        args.methods,
+        args.duration,
+        args.seed,
+        args.jobs,
+        args.timeout,
+        work,
+        args.reuse_runs,
+    )
+    wall = time.perf_counter() - start
+    checks = checklist(runs)
+    text = f"{table(runs)}\n\n{checklist_text(checks)}\n\nsuite wall time {wall:.0f} s\n"
+    print("\n" + text, end="")
+    report = {
+        "settings": {
+            "scenarios": args.scenarios,
+            "conditions": {c: CONDITIONS[c] for c in args.conditions},
+            "methods": args.methods,
+            "duration_s": args.duration,
+            "seed": args.seed,
+            "jobs": args.jobs,
+            "timeout_s": args.timeout,
+            "work": str(work),
+            "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}",
+            "python": platform.python_version(),
+        },
+        "wall_s": wall,
+        "runs": [asdict(r) for r in runs],
+        "targets": [asdict(c) for c in checks],
+        "target_counts": {s: sum(c.status == s for c in checks) for s in ("PASS", "MISS", "N/A")},
+    }
+    (args.out / "suite.json").write_text(json.dumps(report, indent=2, allow_nan=False) + "\n")
+    (args.out / "suite.txt").write_text(text)
+    paths = plot(runs, args.out)
+    print(f"wrote {args.out / 'suite.json'}, {args.out / 'suite.txt'} and {len(paths)} plots")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

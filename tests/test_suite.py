@@ -1,0 +1,117 @@
+"""benchmarks/suite.py: the targets checklist, the table, and its subprocess steps."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+_spec = importlib.util.spec_from_file_location("suite", ROOT / "benchmarks" / "suite.py")
+assert _spec is not None and _spec.loader is not None
+suite = importlib.util.module_from_spec(_spec)
+sys.modules["suite"] = suite  # dataclasses resolve their module
+_spec.loader.exec_module(suite)
+
+
+def _run(
+    method: str,
+    condition: str = "nominal",
+    error: str | None = None,
+    motion: float = 1.0,
+    **metrics: float | None,
+):
+    """A humanoid_push run with error `motion` on every metric of BEATS_BASELINES, or failed."""
+    values = {**dict.fromkeys(suite.BEATS_BASELINES, motion), **metrics} if error is None else {}
+    return suite.Run("humanoid_push", condition, method, metrics=values, error=error)
+
+
+def test_physics_must_beat_every_baseline_on_each_metric():
+    runs = [
+        _run("physics", joint_deg=0.5, position_mm=0.2),
+        _run("kinematic", joint_deg=0.8),
+        _run("raw", joint_deg=0.4, position_mm=7.0),
+    ]
+    (check,) = suite.check_beats_baselines(runs)
+    assert check.status == "MISS"  # joint_deg 0.5 against raw's 0.4; orientation ties at 1.0
+    assert "joint_deg 0.5 vs raw 0.4 (1.25×)" in check.detail
+    assert "orientation_deg 1 vs kinematic 1 (1.00×)" in check.detail
+    assert "position_mm" not in check.detail
+    better = [_run("physics", motion=0.5), _run("raw")]
+    better[0].metrics["joint_deg"] = 0.9
+    (check,) = suite.check_beats_baselines(better)
+    assert check.status == "PASS" and check.detail == "joint_deg 0.9 vs raw 1 (0.90×)"
+
+
+def test_a_failed_baseline_leaves_the_target_unmeasured_not_passed():
+    runs = [
+        _run("physics", motion=0.5),
+        _run("raw"),
+        _run("ekf", error="timed out after 600 s: physfuse estimate"),
+    ]
+    (check,) = suite.check_beats_baselines(runs)
+    assert check.status == "N/A" and check.detail.endswith(": ekf failed")
+    runs[1].metrics["joint_deg"] = 0.1  # a miss outweighs the missing baseline
+    assert suite.check_beats_baselines(runs)[0].status == "MISS"
+
+
+def test_occluded_error_must_be_at_most_a_third_of_the_kinematic_smoothers():
+    def runs(physics_mm: float, occluded_s: float = 1.2):
+        return [
+            _run("physics", "occlusion", occluded_position_mm=physics_mm, occluded_s=occluded_s),
+            _run("kinematic", "occlusion", occluded_position_mm=3.0, occluded_s=occluded_s),
+        ]
+
+    (check,) = suite.check_occlusion(runs(0.9))
+    assert check.status == "PASS" and "(0.30×, target ≤ 0.33×)" in check.detail
+    assert suite.check_occlusion(runs(1.2))[0].status == "MISS"
+    assert suite.check_occlusion(runs(0.9, occluded_s=0.0)) == []  # nothing was occluded
+
+
+def test_contact_force_target_applies_to_the_nominal_condition():
+    runs = [
+        _run("physics", "nominal", contact_force_pct_weight=4.0),
+        _run("physics", "outliers", contact_force_pct_weight=40.0),
+    ]
+    (check,) = suite.check_contact_force(runs)
+    assert (check.condition, check.status) == ("nominal", "PASS")
+    runs[0].metrics["contact_force_pct_weight"] = 12.5
+    assert "12.5% of m·g (1.25× the limit)" in suite.check_contact_force(runs)[0].detail
+
+
+def test_table_has_a_row_per_run_failures_in_one_line_and_no_empty_columns():
+    runs = [
+        _run("physics", wall_over_duration=0.7),
+        _run("ukf", error="physfuse estimate: error: boom"),
+    ]
+    text = suite.table(runs)
+    head, _, physics, ukf = text.splitlines()
+    assert "pos mm" in head and "wall/T" in head and "occ mm" not in head
+    assert physics.split()[:3] == ["humanoid_push", "nominal", "physics"]
+    assert physics.split()[-1] == "0.7"
+    assert ukf.endswith("failed: physfuse estimate: error: boom")
+
+
+def test_a_failing_step_becomes_one_line_and_a_log_is_simulated_once(tmp_path):
+    error = suite.call(["simulate", "nope", "--out", str(tmp_path / "x.mcap")], 120, tmp_path / "t")
+    assert error is not None and error.startswith("physfuse simulate: error: unknown scenario")
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    log, config, error = suite.simulate_log("single_joint", "nominal", 0, 0.3, logs, 120)
+    assert error is None and log.exists() and "[streams.command]" in config.read_text()
+    mtime = log.stat().st_mtime_ns
+    assert suite.simulate_log("single_joint", "nominal", 0, 0.3, logs, 120)[2] is None
+    assert log.stat().st_mtime_ns == mtime  # the cache answered
+    run = suite.Run("single_joint", "nominal", "physics")
+    folder = tmp_path / "run"
+    suite.estimate_and_evaluate(run, log, tmp_path / "missing.toml", folder, 120, False)
+    assert run.error is not None and "missing.toml" in run.error and "\n" not in run.error
+    assert run.metrics == {}
+
+
+def test_a_baseline_without_the_method_option_is_reported_not_run(tmp_path):
+    run = suite.Run("single_joint", "nominal", "ekf")
+    log = tmp_path / "x.mcap"
+    log.write_bytes(b"")
+    suite.estimate_and_evaluate(run, log, tmp_path / "x.toml", tmp_path / "run", 60, False)
+    assert run.error == "physfuse estimate has no --method option (only the physics smoother)"
