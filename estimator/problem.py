@@ -157,6 +157,8 @@ class SensorBlock:
     bias:    slice of the bias vector added to the prediction (IMU, F/T), or None
     stage:   "pos", "vel" or "acc": what the sensor depends on (an acceleration-stage sensor
              sees a knot's position through a_k, 1/h² strongly)
+    group:   rows per element (a marker's 3, a joint's 1): missing samples and the robust
+             kernel go by element; 0: the block is one element
     """
 
     stream: str
@@ -166,6 +168,27 @@ class SensorBlock:
     sigma: np.ndarray
     bias: slice | None = None
     stage: str = "pos"
+    group: int = 0
+
+    def elements(self) -> list[SensorBlock]:
+        """One block per element (per `group` rows); [self] for a one-element block."""
+        if not self.group or self.group == len(self.rows):
+            return [self]
+        g = self.group
+        sigma = self.sigma
+        return [
+            replace(
+                self,
+                rows=self.rows[i : i + g],
+                values=self.values[:, i : i + g],
+                sigma=sigma[..., i : i + g],
+                bias=None
+                if self.bias is None
+                else slice(self.bias.start + i, self.bias.start + i + g),
+                group=0,
+            )
+            for i in range(0, len(self.rows), g)
+        ]
 
 
 @dataclass
@@ -307,18 +330,18 @@ def build_problem(
                         np.full(3, noise["orientation_std_rad"]),
                     )
                 )
-        elif stream.kind == "markers":
-            values = interpolated_at_knots(m, t_ns)
-            for e in range(len(stream.elements)):
-                blocks.append(
-                    SensorBlock(
-                        name,
-                        "vector",
-                        adr[e],
-                        values[:, e, :3],
-                        np.full(3, noise["position_std_m"]),
-                    )
+        elif stream.kind == "markers":  # one group of 3 rows per marker
+            values = interpolated_at_knots(m, t_ns)[:, :, :3]
+            blocks.append(
+                SensorBlock(
+                    name,
+                    "vector",
+                    np.concatenate(adr),
+                    values.reshape(len(t_ns), -1),
+                    np.full(values.shape[1] * 3, noise["position_std_m"]),
+                    group=3,
                 )
+            )
         elif stream.kind == "imu":
             m = without_saturated(m, stream)
             accel_values, accel_counts = averaged_at_knots(m, t_ns, "acc")
@@ -360,19 +383,18 @@ def build_problem(
             )
             bias_of[name] = bias
             nb = bias.stop
-        elif stream.kind == "joint_state":
-            values = interpolated_at_knots(m, t_ns)
-            position = values[:, :, 0]
-            for e in range(len(stream.elements)):
-                blocks.append(
-                    SensorBlock(
-                        name,
-                        "vector",
-                        adr[e],
-                        position[:, e : e + 1],
-                        np.array([noise["position_std"]]),
-                    )
+        elif stream.kind == "joint_state":  # one group (row) per joint
+            position = interpolated_at_knots(m, t_ns)[:, :, 0]
+            blocks.append(
+                SensorBlock(
+                    name,
+                    "vector",
+                    np.concatenate(adr),
+                    position,
+                    np.full(position.shape[1], noise["position_std"]),
+                    group=1,
                 )
+            )
         elif stream.kind == "wrench":
             values, _ = averaged_at_knots(m, t_ns, "acc")
             force, torque = values[:, 0, :3], values[:, 0, 3:6]

@@ -16,6 +16,7 @@ also avoids GTSAM's CustomFactor path, which copies the whole Values on every ca
 
 from __future__ import annotations
 
+import queue
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -107,7 +108,9 @@ class Linearizer:
 
     def __init__(self, problem: Problem) -> None:
         self.problem = problem
-        self.knots = [KnotModel(problem, problem.settings.path) for _ in range(THREADS)]
+        self.idle: queue.SimpleQueue[KnotModel] = queue.SimpleQueue()
+        for _ in range(THREADS):
+            self.idle.put(KnotModel(problem, problem.settings.path))
         self.rotations = _RotationDofs.of(problem.model)
         rotation = {d + i for _, d in self.rotations.quat_dofs for i in range(3)}
         # a dof where difference Jacobians are ±1 (any dof if all are rotations: overwritten)
@@ -129,46 +132,61 @@ class Linearizer:
         n_jac = K if with_jacobians else 0
         F = np.zeros((3, n_jac, nv, nv))  # ∂u/∂(q, v, a), MuJoCo's transposed layout
         S = np.zeros((3, n_jac, nv, ns))  # ∂s/∂(q, v, a)
+        JuT = np.empty((n_jac, 3 * nv, nv))  # the chained Jacobians, transposed
+        JsT = np.empty((n_jac, 3 * nv, ns))
+        if with_jacobians:
+            # chain rule through v_k = (q_k ⊖ q_{k−1})/h and a_k = (v_{k+1} − v_k)/h:
+            # ∂v_k/∂(x_{k−1}, x_k) = (d1_k, d2_k)/h, ∂a_k/∂(x_{k−1}, x_k, x_{k+1}) =
+            # (−d1_k, d1_{k+1} − d2_k, d2_{k+1})/h², with d1, d2 of the pair (q_{k−1}, q_k)
+            d1, d2 = difference_jacobians(p.model, self.rotations, qpos[:-1], qpos[1:])
 
-        def work(chunk: range, worker: KnotModel) -> None:
-            for k in chunk:
-                i = k - 1
-                u[i], s[i] = worker.evaluate(qpos[k], v[k], a[k])
-                if with_jacobians:
-                    worker.jacobians(qpos[k], v[k], a[k], *F[:, i], *S[:, i])
+        def chained(D: np.ndarray, i: slice, out: np.ndarray) -> None:
+            """out = [P d1_k,  D_q + P d2_k + Q d1_{k+1},  Q d2_{k+1}]ᵀ, P = D_v/h − D_a/h²,
+            Q = D_a/h² (over x_{k−1}, x_k, x_{k+1}), computed transposed in MuJoCo's layout
+            D (3, n, nv, m), where every product is contiguous."""
+            Qt = D[2] / h**2
+            Pt = D[1] / h - Qt
+            out[:, :nv] = self._transposed_times(d1[:-1][i], Pt)
+            out[:, nv : 2 * nv] = D[0]
+            out[:, nv : 2 * nv] += self._transposed_times(d2[:-1][i], Pt)
+            out[:, nv : 2 * nv] += self._transposed_times(d1[1:][i], Qt)
+            out[:, 2 * nv :] = self._transposed_times(d2[1:][i], Qt)
 
-        interior = range(1, p.T - 1)
-        list(self.pool.map(work, [interior[i::THREADS] for i in range(THREADS)], self.knots))
+        def work(chunk: range) -> None:
+            worker = self.idle.get()  # a KnotModel (MjData) no other thread is using
+            try:
+                for k in chunk:
+                    i = k - 1
+                    u[i], s[i] = worker.evaluate(qpos[k], v[k], a[k])
+                    if with_jacobians:
+                        worker.jacobians(qpos[k], v[k], a[k], *F[:, i], *S[:, i])
+            finally:
+                self.idle.put(worker)
+            if with_jacobians:  # numpy releases the GIL: the chain rule runs in parallel too
+                rows = slice(chunk.start - 1, chunk.stop - 1)
+                chained(F[:, rows], rows, JuT[rows])
+                chained(S[:, rows], rows, JsT[rows])
+
+        list(self.pool.map(work, self.chunks(1, p.T - 1)))
         if not with_jacobians:
             return Terms(a[1:-1], u, s)
-        # chain rule through v_k = (q_k ⊖ q_{k−1})/h and a_k = (v_{k+1} − v_k)/h:
-        # ∂v_k/∂(x_{k−1}, x_k) = (d1_k, d2_k)/h, ∂a_k/∂(x_{k−1}, x_k, x_{k+1}) =
-        # (−d1_k, d1_{k+1} − d2_k, d2_{k+1})/h², with d1, d2 of the pair (q_{k−1}, q_k)
-        d1, d2 = difference_jacobians(p.model, self.rotations, qpos[:-1], qpos[1:])
-
-        def chained(D: np.ndarray) -> np.ndarray:
-            """[P d1_k,  D_q + P d2_k + Q d1_{k+1},  Q d2_{k+1}] with P = D_v/h − D_a/h²,
-            Q = D_a/h² (the Jacobians over x_{k−1}, x_k, x_{k+1})."""
-            Dq, Dv, Da = (D[j].transpose(0, 2, 1) for j in range(3))
-            Q = Da / h**2
-            P = Dv / h - Q
-            out = np.empty((*Dq.shape[:2], 3 * nv))
-            out[:, :, :nv] = self._times_difference(P, d1[:-1])
-            out[:, :, nv : 2 * nv] = Dq + self._times_difference(P, d2[:-1])
-            out[:, :, nv : 2 * nv] += self._times_difference(Q, d1[1:])
-            out[:, :, 2 * nv :] = self._times_difference(Q, d2[1:])
-            return out
-
         da = np.concatenate([-d1[:-1], d1[1:] - d2[:-1], d2[1:]], axis=2) / h**2
-        return Terms(a[1:-1], u, s, chained(F), chained(S), da)
+        return Terms(a[1:-1], u, s, JuT.transpose(0, 2, 1), JsT.transpose(0, 2, 1), da)
 
-    def _times_difference(self, D: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """D @ d (K, m, nv) for a difference Jacobian d (K, nv, nv) = ±I on vector dofs, 3×3
-        blocks on rotations: ±D with the rotation columns redone."""
-        out = D * d[:, self.vector_dof, self.vector_dof][:, None, None]
+    @staticmethod
+    def chunks(start: int, stop: int) -> list[range]:
+        """range(start, stop) in contiguous pieces, several per thread (load balance)."""
+        n = max(1, min(4 * THREADS, stop - start))
+        edges = np.linspace(start, stop, n + 1).round().astype(int)
+        return [range(edges[j], edges[j + 1]) for j in range(n) if edges[j + 1] > edges[j]]
+
+    def _transposed_times(self, d: np.ndarray, Dt: np.ndarray) -> np.ndarray:
+        """(D d)ᵀ = dᵀ Dᵀ (K, nv, m) for a difference Jacobian d (K, nv, nv) = ±I on vector
+        dofs, 3×3 blocks on rotations: ±Dᵀ with the rotation rows redone."""
+        out = Dt * d[:, self.vector_dof, self.vector_dof][:, None, None]
         for _, dadr in self.rotations.quat_dofs:
             rot = slice(dadr, dadr + 3)
-            out[:, :, rot] = D[:, :, rot] @ d[:, rot, rot]
+            out[:, rot] = d[:, rot, rot].transpose(0, 2, 1) @ Dt[:, rot]
         return out
 
     # -- whitened, robustly weighted rows of every factor --------------------------------------
@@ -184,18 +202,24 @@ class Linearizer:
         K = p.T - 2
         out: list[Block] = []
 
-        def weighted(block: Block, kernel: str, scale: np.ndarray | float = 1.0) -> Block:
-            """The robust kernel on the block's norm per knot; its threshold scales with
-            `scale`."""
-            norm = np.linalg.norm(block.r, axis=1) / scale
+        def weighted(
+            block: Block, kernel: str, scale: np.ndarray | float = 1.0, group: int = 0
+        ) -> Block:
+            """The robust kernel on the norm of each element's rows (`group` rows each; 0:
+            the whole block) per knot; its threshold scales with `scale`."""
+            m = block.r.shape[1]
+            g = group or m
+            norm = np.linalg.norm(block.r.reshape(K, m // g, g), axis=2) / np.reshape(
+                scale, (-1, 1)
+            )
             loss, weight = KERNELS[kernel](norm, k_huber)
-            block.cost = loss * np.square(scale)
+            block.cost = loss.sum(axis=1) * np.square(scale)
             if robust:
-                root = np.sqrt(weight)
-                block.r = block.r * root[:, None]
+                root = np.repeat(np.sqrt(weight), g, axis=1)
+                block.r = block.r * root
                 for J in (block.J, block.J_bias):
                     if J is not None:
-                        J *= root[:, None, None]
+                        J *= root[:, :, None]
             return block
 
         # physics: W (u − u_known); rows with no known force are 0. Robust too, so that impacts
@@ -230,35 +254,37 @@ class Linearizer:
         # sensors, robust
         for sensor in p.blocks:
             meas = sensor.values[1:-1]
-            valid = np.all(np.isfinite(meas), axis=1)
+            g = sensor.group or meas.shape[1]
+            valid = np.isfinite(meas).reshape(K, -1, g).all(axis=2)  # (K, elements)
+            measured = np.repeat(valid, g, axis=1)  # (K, n_meas)
             sig = sensor.sigma[1:-1] if sensor.sigma.ndim == 2 else np.tile(sensor.sigma, (K, 1))
             pred = t.s[:, sensor.rows]
             Js = t.Js[:, sensor.rows] if t.Js is not None else None
             J_bias = None
             if sensor.kind == "quat":
-                e, de_dp = quat_errors(pred, np.where(valid[:, None], meas, pred))
+                e, de_dp = quat_errors(pred, np.where(measured, meas, pred))
                 r = e / sig
                 if Js is not None:
                     Js = np.einsum("kij,kjc->kic", de_dp, Js)
             else:
                 b = bias[1:-1, sensor.bias] if sensor.bias is not None else 0.0
-                r = (pred + b - np.where(valid[:, None], meas, 0.0)) / sig
+                r = (pred + b - np.where(measured, meas, 0.0)) / sig
                 if jac and sensor.bias is not None:
                     J_bias = np.zeros((K, r.shape[1], p.nb))
                     rows = np.arange(r.shape[1])
                     J_bias[:, rows, sensor.bias.start + rows] = 1.0 / sig
             J = Js / sig[:, :, None] if Js is not None else None
-            r[~valid] = 0.0
+            rows_valid = np.repeat(valid, r.shape[1] // valid.shape[1], axis=1)  # (K, n_res)
+            r[~rows_valid] = 0.0
             for M in (J, J_bias):
                 if M is not None:
-                    M[~valid] = 0.0
-            rows_valid = np.repeat(valid[:, None], r.shape[1], 1)
+                    M[~rows_valid] = 0.0
             block = Block(sensor.stream, r, J, np.zeros(K), rows_valid, J_bias)
             settings = p.settings
             kernel = settings.sensor_kernel
             if sensor.stage == "acc":
                 kernel = settings.acceleration_sensor_kernel
-            out.append(weighted(block, kernel))
+            out.append(weighted(block, kernel, group=sensor.group))
         return out
 
     def cost(self, qpos: np.ndarray, bias: np.ndarray) -> tuple[float, dict[str, float]]:
@@ -332,17 +358,26 @@ class BandedSystem:
         p = lin.problem
         T, nz, nv, span = p.T, p.nz, p.model.nv, lin.span
         K = T - 2
-        G = np.einsum("kmi,kmj->kij", J, J, optimize=True).reshape(K, span, nz, span, nz)
-        gk = np.einsum("kmi,km->ki", J, r, optimize=True).reshape(K, span, nz)
+        G = np.empty((K, span * nz, span * nz))  # J_kᵀ J_k and J_kᵀ r_k of every knot's rows
+        gk = np.empty((K, span * nz))
+
+        def products(c: range) -> None:  # (in threads: numpy releases the GIL)
+            i = slice(c.start, c.stop)
+            G[i] = np.einsum("kmi,kmj->kij", J[i], J[i], optimize=True)
+            gk[i] = np.einsum("kmi,km->ki", J[i], r[i], optimize=True)
+
+        list(lin.pool.map(products, lin.chunks(0, K)))
+        G_keys = G.reshape(K, span, nz, span, nz)  # [k, a, :, b, :]: keys k − 1 + a, k − 1 + b
+        g_keys = gk.reshape(K, span, nz)
         diag = np.zeros((T, nz, nz))
         lower = [np.zeros((T - d, nz, nz)) for d in range(1, span)]
         g = np.zeros((T, nz))
         for a in range(span):  # knot k's rows add to keys k − 1 + a, k − 1 + b
             n = min(K, T - a)  # (the jerk prior's last knot reaches no key beyond T − 1)
-            g[a : a + n] += gk[:n, a]
-            diag[a : a + n] += G[:n, a, :, a]
+            g[a : a + n] += g_keys[:n, a]
+            diag[a : a + n] += G_keys[:n, a, :, a]
             for b in range(a):
-                lower[a - b - 1][b : b + n] += G[:n, a, :, b]
+                lower[a - b - 1][b : b + n] += G_keys[:n, a, :, b]
         if p.nb:  # bias prior on b_0, random walk (b_{k+1} − b_k)/(σ_walk √h)
             b_ = slice(nv, nz)
             diag[0, b_, b_] += np.diag(p.bias_prior**-2.0)

@@ -279,7 +279,7 @@ class _Knot:
     def at(cls, problem: Problem, k: int) -> _Knot:
         blocks, rows, z, sigma = [], [], [], []
         start = 0
-        for b in problem.blocks:
+        for b in (e for block in problem.blocks for e in block.elements()):
             meas = b.values[k]
             if not np.all(np.isfinite(meas)):
                 continue
