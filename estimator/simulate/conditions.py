@@ -12,9 +12,11 @@ dropouts and outliers mixed in). With one:
                  and latency stay. The model mismatch is the scenario's default `Mismatch()`
                  (log-normal: σ 5% mass, 5% inertia, 10% friction, 10% contact softness):
                  a robot is never exactly its model.
-    occlusion    nominal + the first mocap body (a pose sensor's first label; a marker
-                 sensor: all its markers, which sit on one body) unseen for 0.2–1 s, once in
-                 each 1.25 s slot of the log after a 0.25 s margin at either end.
+    occlusion    nominal + the mocap system loses the robot (every body of its mocap
+                 sensor; a marker sensor: every marker) for 0.2–1 s, once in each 1.25 s
+                 slot of the log after a 0.25 s margin at either end. (Hiding one body of an
+                 articulated robot whose other bodies stay in view hides nothing: the
+                 encoders carry their pose over to it.)
     outliers     nominal + mocap outliers: each frame of each body (each marker) is, with
                  probability 2%, off by 3–15 cm in a random direction (a pose also turned
                  by 0.5 rad) — a marker swap.
@@ -56,7 +58,7 @@ from estimator.simulate.writer import Message
 CONDITIONS: Mapping[str, str] = {
     "nominal": "sensor noise, biases and latency, default model mismatch; no mocap dropouts "
     "or outliers",
-    "occlusion": "nominal + the first mocap body occluded 0.2-1 s once per 1.25 s",
+    "occlusion": "nominal + every mocap body occluded 0.2-1 s once per 1.25 s",
     "outliers": "nominal + 2% of mocap frames per body (marker) off by 3-15 cm",
     "mismatch": "nominal with the model off by exactly ±10% mass, ±30% friction",
     "no_commands": "nominal without the command topic (no command stream in the config)",
@@ -172,7 +174,7 @@ def with_condition(scenario: Scenario, condition: str) -> Scenario:
     sensors = tuple(_without_dropouts_or_outliers(s) for s in scenario.sensors)
     mismatch = scenario.mismatch
     if condition == "occlusion":
-        sensors = _occlude_first_body(sensors, scenario.name)
+        sensors = _occlude_mocap(sensors, scenario.name)
     elif condition == "outliers":
         sensors = tuple(_with_outliers(s) for s in sensors)
     elif condition == "mismatch":
@@ -195,11 +197,11 @@ def _with_outliers(sensor: Sensor) -> Sensor:
     return sensor
 
 
-def _occlude_first_body(sensors: tuple[Sensor, ...], scenario: str) -> tuple[Sensor, ...]:
-    """The sensors with the first mocap sensor's first body (all markers) occluded."""
+def _occlude_mocap(sensors: tuple[Sensor, ...], scenario: str) -> tuple[Sensor, ...]:
+    """The sensors with every body (every marker) of the first mocap sensor occluded."""
     for i, sensor in enumerate(sensors):
         if isinstance(sensor, MocapPoses):
-            occluded: Sensor = Occluded(sensor, (next(iter(sensor.bodies)),))
+            occluded: Sensor = Occluded(sensor, tuple(sensor.bodies))
         elif isinstance(sensor, MocapMarkers):
             occluded = Occluded(sensor, tuple(sensor.markers))
         else:
