@@ -344,36 +344,17 @@ def build_problem(
             )
         elif stream.kind == "imu":
             m = without_saturated(m, stream)
-            accel_values, accel_counts = averaged_at_knots(m, t_ns, "acc")
-            gyro_values, gyro_counts = averaged_at_knots(m, t_ns, "vel")
-            accel = accel_values[:, 0, 7:10]
-            gyro = gyro_values[:, 0, 4:7]
-            bias = slice(nb, nb + 6)
-            blocks.append(
-                SensorBlock(
-                    name,
-                    "vector",
-                    adr[0],
-                    accel,
-                    np.full(3, noise["accel_std"]),
-                    slice(nb, nb + 3),
-                    "acc",
-                )
+            accel, accel_counts = averaged_at_knots(m, t_ns, "acc")
+            gyro, gyro_counts = averaged_at_knots(m, t_ns, "vel")
+            blocks += _biased_pair(
+                name,
+                adr,
+                (accel[:, 0, 7:10], gyro[:, 0, 4:7]),
+                (accel_counts[:, 0, 7:10], gyro_counts[:, 0, 4:7]),
+                (noise["accel_std"], noise["gyro_std"]),
+                ("acc", "vel"),
+                nb,
             )
-            blocks.append(
-                SensorBlock(
-                    name,
-                    "vector",
-                    adr[1],
-                    gyro,
-                    np.full(3, noise["gyro_std"]),
-                    slice(nb + 3, nb + 6),
-                    "vel",
-                )
-            )
-            # averaging n samples per knot: σ/√n (per knot and row, applied at whitening)
-            blocks[-2] = _scaled(blocks[-2], 1.0 / np.sqrt(np.maximum(accel_counts[:, 0, 7:10], 1)))
-            blocks[-1] = _scaled(blocks[-1], 1.0 / np.sqrt(np.maximum(gyro_counts[:, 0, 4:7], 1)))
             imu_streams.append(name)
             walks.append(
                 np.r_[np.full(3, noise["accel_bias_walk"]), np.full(3, noise["gyro_bias_walk"])]
@@ -381,8 +362,8 @@ def build_problem(
             priors.append(
                 np.r_[np.full(3, settings.bias_prior_accel), np.full(3, settings.bias_prior_gyro)]
             )
-            bias_of[name] = bias
-            nb = bias.stop
+            bias_of[name] = slice(nb, nb + 6)
+            nb += 6
         elif stream.kind == "joint_state":  # one group (row) per joint
             position = interpolated_at_knots(m, t_ns)[:, :, 0]
             blocks.append(
@@ -396,30 +377,15 @@ def build_problem(
                 )
             )
         elif stream.kind == "wrench":
-            values, _ = averaged_at_knots(m, t_ns, "acc")
-            force, torque = values[:, 0, :3], values[:, 0, 3:6]
-            bias = slice(nb, nb + 6)
-            blocks.append(
-                SensorBlock(
-                    name,
-                    "vector",
-                    adr[0],
-                    force,
-                    np.full(3, noise["force_std"]),
-                    slice(nb, nb + 3),
-                    "acc",
-                )
-            )
-            blocks.append(
-                SensorBlock(
-                    name,
-                    "vector",
-                    adr[1],
-                    torque,
-                    np.full(3, noise["torque_std"]),
-                    slice(nb + 3, nb + 6),
-                    "acc",
-                )
+            wrench, counts = averaged_at_knots(m, t_ns, "acc")
+            blocks += _biased_pair(
+                name,
+                adr,
+                (wrench[:, 0, :3], wrench[:, 0, 3:6]),
+                (counts[:, 0, :3], counts[:, 0, 3:6]),
+                (noise["force_std"], noise["torque_std"]),
+                ("acc", "acc"),
+                nb,
             )
             walks.append(
                 np.r_[np.full(3, noise["force_bias_walk"]), np.full(3, noise["torque_bias_walk"])]
@@ -427,8 +393,8 @@ def build_problem(
             priors.append(
                 np.r_[np.full(3, noise["force_bias_std"]), np.full(3, noise["torque_bias_std"])]
             )
-            bias_of[name] = bias
-            nb = bias.stop
+            bias_of[name] = slice(nb, nb + 6)
+            nb += 6
     qfrc_known, sigma = _known_forces(model, config, measurements, t_ns, settings)
     if settings.method == "kinematic":
         sigma[:] = np.inf  # no physics factor anywhere
@@ -450,10 +416,30 @@ def build_problem(
     )
 
 
-def _scaled(block: SensorBlock, factor: np.ndarray) -> SensorBlock:
-    """A block whose σ is multiplied per knot (T,) or per knot and row (T, n): sigma (T, n)."""
-    sigma = factor.reshape(len(factor), -1) * block.sigma
-    return replace(block, sigma=sigma)
+def _biased_pair(
+    name: str,
+    rows: list[np.ndarray],
+    values: tuple[np.ndarray, np.ndarray],
+    counts: tuple[np.ndarray, np.ndarray],
+    std: tuple[float, float],
+    stages: tuple[str, str],
+    nb: int,
+) -> list[SensorBlock]:
+    """The two 3-axis halves of an IMU (accelerometer, gyro) or a force/torque sensor, with
+    their biases b[nb : nb + 3] and b[nb + 3 : nb + 6]. values, counts: (T, 3) each, the mean
+    of the samples a knot stands for and how many; averaging n samples gives σ/√n."""
+    return [
+        SensorBlock(
+            name,
+            "vector",
+            rows[i],
+            values[i],
+            std[i] / np.sqrt(np.maximum(counts[i], 1)),  # (T, 3)
+            slice(nb + 3 * i, nb + 3 * i + 3),
+            stages[i],
+        )
+        for i in range(2)
+    ]
 
 
 def _sensor_rows(model: mujoco.MjModel, name: str) -> np.ndarray:
