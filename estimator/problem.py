@@ -62,6 +62,7 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
         0.0,
         "σ of a constant-acceleration prior on (a_{k+1} − a_k)/h, units/s³ (0: none)",
     ),
+    "jerk_kernel": ("none", "robust kernel of the jerk prior, per dof: none | huber | cauchy"),
     "huber_k": (2.0, "robust kernel threshold k on a whitened residual block's norm"),
     "physics_kernel": ("cauchy", "robust kernel of the physics factors: huber | cauchy"),
     "sensor_kernel": ("huber", "robust kernel of position- and velocity-stage sensors"),
@@ -84,6 +85,7 @@ CHOICES: Mapping[str, tuple[str, ...]] = {
     "physics_kernel": ("huber", "cauchy"),
     "sensor_kernel": ("huber", "cauchy"),
     "acceleration_sensor_kernel": ("huber", "cauchy"),
+    "jerk_kernel": ("none", "huber", "cauchy"),
 }
 # the kinematic baseline: no physics factors; a constant-acceleration (white jerk) prior with
 # σ_j of fast legged-robot motion, set once (not fitted to any recording)
@@ -99,6 +101,7 @@ class Settings:
     physics_std_actuated: float = 20.0
     accel_prior_std: float = 200.0
     jerk_prior_std: float = 0.0
+    jerk_kernel: str = "none"
     huber_k: float = 2.0
     physics_kernel: str = "cauchy"
     sensor_kernel: str = "huber"

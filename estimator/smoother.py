@@ -250,7 +250,12 @@ class Linearizer:
                 J[:-1, :, nv:] += t.da[1:] / sj
             valid = np.ones(r.shape, bool)
             valid[-1] = False
-            out.append(Block("jerk prior", r, J, 0.5 * np.sum(r**2, axis=1), valid))
+            jerk = Block("jerk prior", r, J, np.zeros(K), valid)
+            if p.settings.jerk_kernel == "none":
+                jerk.cost = 0.5 * np.sum(r**2, axis=1)
+                out.append(jerk)
+            else:  # per dof: an impact on one leg does not unsmooth the others
+                out.append(weighted(jerk, p.settings.jerk_kernel, group=1))
         # sensors, robust
         for sensor in p.blocks:
             meas = sensor.values[1:-1]
