@@ -65,10 +65,10 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
     "jerk_kernel": ("none", "robust kernel of the jerk prior, per dof: none | huber | cauchy"),
     "huber_k": (2.0, "robust kernel threshold k on a whitened residual block's norm"),
     "physics_kernel": ("cauchy", "robust kernel of the physics factors: huber | cauchy"),
-    "sensor_kernel": ("huber", "robust kernel of position- and velocity-stage sensors"),
-    "acceleration_sensor_kernel": (
+    "sensor_kernel": ("huber", "robust kernel of the kinematic sensors (mocap, encoders, IMU)"),
+    "force_sensor_kernel": (
         "cauchy",
-        "robust kernel of acceleration-stage sensors (accelerometer, force/torque)",
+        "robust kernel of force/torque sensors, predicted through the contact model",
     ),
     "window_s": (4.0, "length of one smoothing window, s"),
     "overlap_s": (0.5, "overlap of consecutive windows, s"),
@@ -84,7 +84,7 @@ CHOICES: Mapping[str, tuple[str, ...]] = {
     "path": ("native", "reference"),
     "physics_kernel": ("huber", "cauchy"),
     "sensor_kernel": ("huber", "cauchy"),
-    "acceleration_sensor_kernel": ("huber", "cauchy"),
+    "force_sensor_kernel": ("huber", "cauchy"),
     "jerk_kernel": ("none", "huber", "cauchy"),
 }
 # the kinematic baseline: no physics factors; a constant-acceleration (white jerk) prior with
@@ -105,7 +105,7 @@ class Settings:
     huber_k: float = 2.0
     physics_kernel: str = "cauchy"
     sensor_kernel: str = "huber"
-    acceleration_sensor_kernel: str = "cauchy"
+    force_sensor_kernel: str = "cauchy"
     window_s: float = 4.0
     overlap_s: float = 0.5
     max_iterations: int = 30
@@ -162,6 +162,7 @@ class SensorBlock:
              sees a knot's position through a_k, 1/h² strongly)
     group:   rows per element (a marker's 3, a joint's 1): missing samples and the robust
              kernel go by element; 0: the block is one element
+    kernel:  the Settings field that names its robust kernel
     """
 
     stream: str
@@ -172,6 +173,7 @@ class SensorBlock:
     bias: slice | None = None
     stage: str = "pos"
     group: int = 0
+    kernel: str = "sensor_kernel"
 
     def elements(self) -> list[SensorBlock]:
         """One block per element (per `group` rows); [self] for a one-element block."""
@@ -389,6 +391,7 @@ def build_problem(
                 (noise["force_std"], noise["torque_std"]),
                 ("acc", "acc"),
                 nb,
+                kernel="force_sensor_kernel",
             )
             walks.append(
                 np.r_[np.full(3, noise["force_bias_walk"]), np.full(3, noise["torque_bias_walk"])]
@@ -427,6 +430,7 @@ def _biased_pair(
     std: tuple[float, float],
     stages: tuple[str, str],
     nb: int,
+    kernel: str = "sensor_kernel",
 ) -> list[SensorBlock]:
     """The two 3-axis halves of an IMU (accelerometer, gyro) or a force/torque sensor, with
     their biases b[nb : nb + 3] and b[nb + 3 : nb + 6]. values, counts: (T, 3) each, the mean
@@ -440,6 +444,7 @@ def _biased_pair(
             std[i] / np.sqrt(np.maximum(counts[i], 1)),  # (T, 3)
             slice(nb + 3 * i, nb + 3 * i + 3),
             stages[i],
+            kernel=kernel,
         )
         for i in range(2)
     ]

@@ -285,10 +285,7 @@ class Linearizer:
                 if M is not None:
                     M[~rows_valid] = 0.0
             block = Block(sensor.stream, r, J, np.zeros(K), rows_valid, J_bias)
-            settings = p.settings
-            kernel = settings.sensor_kernel
-            if sensor.stage == "acc":
-                kernel = settings.acceleration_sensor_kernel
+            kernel = getattr(p.settings, sensor.kernel)
             out.append(weighted(block, kernel, group=sensor.group))
         return out
 
