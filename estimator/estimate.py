@@ -25,6 +25,8 @@ class Estimate:
                    (free joint: world position m, body-frame rotation rad; hinge rad; slide m)
     constraints:   T entries: every contact/constraint impulse at knot k (physics.result)
     imu_bias:      stream name → (T, 6) accelerometer bias (m/s²) then gyro bias (rad/s)
+    model_error:   unactuated dof ("root[2]") → (T,) the generalized force offset e_k that the
+                   model needed to explain the motion (N or N·m; the setting model_error_std)
     residuals:     factor type ("physics", a stream name, …) → (T, k) whitened residuals
                    at each knot (NaN where the knot has no such factor)
     cost_by_type:  factor type → its robust cost at this trajectory
@@ -42,6 +44,7 @@ class Estimate:
     constraints: tuple[Constraints, ...]
     model_name: str
     imu_bias: dict[str, np.ndarray] = field(default_factory=dict)
+    model_error: dict[str, np.ndarray] = field(default_factory=dict)
     residuals: dict[str, np.ndarray] = field(default_factory=dict)
     cost_by_type: dict[str, float] = field(default_factory=dict)
 

@@ -74,6 +74,12 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
     "overlap_s": (0.5, "overlap of consecutive windows, s"),
     "max_iterations": (30, "Levenberg–Marquardt iterations per window"),
     "tolerance": (1e-3, "stop when an iteration lowers the cost by less than this fraction"),
+    "model_error_std": (
+        0.0,
+        "σ of a generalized force offset on the unactuated dofs, which absorbs a constant model "
+        "error (weight, contact softness), N or N·m (0: none)",
+    ),
+    "model_error_walk": (1.0, "random walk of that offset, N/√s or N·m/√s"),
     "bias_prior_accel": (0.5, "σ of the first accelerometer bias, m/s²"),
     "bias_prior_gyro": (0.05, "σ of the first gyro bias, rad/s"),
     "fd_eps": (1e-6, "finite-difference step of mjd_inverseFD"),
@@ -87,6 +93,7 @@ CHOICES: Mapping[str, tuple[str, ...]] = {
     "force_sensor_kernel": ("huber", "cauchy"),
     "jerk_kernel": ("none", "huber", "cauchy"),
 }
+MODEL_ERROR = "model error"  # Problem.bias_of key of the generalized force offset
 # the kinematic baseline: no physics factors; a constant-acceleration (white jerk) prior with
 # σ_j of fast legged-robot motion, set once (not fitted to any recording)
 KINEMATIC_JERK_STD = 1000.0
@@ -110,6 +117,8 @@ class Settings:
     overlap_s: float = 0.5
     max_iterations: int = 30
     tolerance: float = 1e-3
+    model_error_std: float = 0.0
+    model_error_walk: float = 1.0
     bias_prior_accel: float = 0.5
     bias_prior_gyro: float = 0.05
     fd_eps: float = 1e-6
@@ -212,6 +221,8 @@ class Problem:
     bias_walk: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (nb,) per √s
     bias_prior: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (nb,) σ of b_0
     bias_of: dict[str, slice] = field(default_factory=dict)  # stream → its 6 bias dims
+    # unactuated dofs with a model-error offset, its bias dims bias_of[MODEL_ERROR]
+    error_dofs: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
 
     @property
     def T(self) -> int:
@@ -401,9 +412,16 @@ def build_problem(
             )
             bias_of[name] = slice(nb, nb + 6)
             nb += 6
-    qfrc_known, sigma = _known_forces(model, config, measurements, t_ns, settings)
+    qfrc_known, sigma, actuated = _known_forces(model, config, measurements, t_ns, settings)
     if settings.method == "kinematic":
         sigma[:] = np.inf  # no physics factor anywhere
+    error_dofs = np.zeros(0, int)
+    if settings.method == "physics" and settings.model_error_std > 0:
+        error_dofs = np.flatnonzero(~actuated)
+        walks.append(np.full(len(error_dofs), settings.model_error_walk))
+        priors.append(np.full(len(error_dofs), settings.model_error_std))
+        bias_of[MODEL_ERROR] = slice(nb, nb + len(error_dofs))
+        nb += len(error_dofs)
     bias_walk = np.concatenate(walks) if walks else np.zeros(0)
     bias_prior = np.concatenate(priors) if priors else np.zeros(0)
     return Problem(
@@ -419,6 +437,7 @@ def build_problem(
         bias_walk,
         bias_prior,
         bias_of,
+        error_dofs,
     )
 
 
@@ -448,6 +467,25 @@ def _biased_pair(
         )
         for i in range(2)
     ]
+
+
+def dof_names(model: mujoco.MjModel) -> list[str]:
+    """(nv,) one name per dof: `<joint>` for hinges and slides, `<joint>_{x,y,z,rx,ry,rz}`
+    for free joints (world translation, body rotation), `<joint>_{rx,ry,rz}` for balls."""
+    names = [""] * model.nv
+    for j in range(model.njnt):
+        joint = mujoco.mj_id2name(model, _OBJ.mjOBJ_JOINT, j) or f"joint{j}"
+        kind = model.jnt_type[j]
+        if kind == mujoco.mjtJoint.mjJNT_FREE:
+            suffixes = ["_x", "_y", "_z", "_rx", "_ry", "_rz"]
+        elif kind == mujoco.mjtJoint.mjJNT_BALL:
+            suffixes = ["_rx", "_ry", "_rz"]
+        else:
+            suffixes = [""]
+        adr = model.jnt_dofadr[j]
+        for i, suffix in enumerate(suffixes):
+            names[adr + i] = joint + suffix
+    return names
 
 
 def _sensor_rows(model: mujoco.MjModel, name: str) -> np.ndarray:
@@ -517,8 +555,8 @@ def _known_forces(
     measurements: Mapping[str, Measurement],
     t_ns: np.ndarray,
     settings: Settings,
-) -> tuple[np.ndarray, np.ndarray]:
-    """u_known (T, nv) and the physics factor's σ (T, nv).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """u_known (T, nv), the physics factor's σ (T, nv) and which dofs an actuator drives (nv,).
 
     Unactuated dofs: u_known = 0 with σ_unactuated. Actuated dofs: the force the logged
     commands produce through the actuators (qfrc_actuator; for motors independent of the
@@ -561,7 +599,7 @@ def _known_forces(
                 ok = np.isfinite(effort[:, e])
                 known[ok, dof] = effort[ok, e]
                 sigma[ok, dof] = settings.physics_std_actuated
-    return known, sigma
+    return known, sigma, actuated
 
 
 def _hold(m: Measurement, t_ns: np.ndarray, component: int = 0) -> np.ndarray:

@@ -16,10 +16,12 @@ from estimator.config import Config
 from estimator.estimate import Estimate
 from estimator.logs.measurements import Measurement
 from estimator.problem import (
+    MODEL_ERROR,
     Problem,
     Settings,
     accelerations,
     build_problem,
+    dof_names,
     interpolated_at_knots,
     knot_grid,
     model_with_sensors,
@@ -49,6 +51,8 @@ class Summary:
     evaluations: int = 0  # passes without
     knots_linearized: int = 0  # Σ knots over those passes
     knots_evaluated: int = 0
+    # unactuated dof → mean generalized force offset the model needed (N or N·m)
+    model_error_mean: dict[str, float] = field(default_factory=dict)
 
 
 def estimate(
@@ -175,6 +179,7 @@ def finish(
         largest_residuals=largest_residuals(est, problem),
         wall_time_s=time.perf_counter() - start,
         warnings=warnings,
+        model_error_mean={dof: float(np.mean(e)) for dof, e in est.model_error.items()},
         **passes,
     )
     return est, summary
@@ -350,6 +355,12 @@ def collect_estimate(
         qfrc[k] = inv.qfrc_inverse
         constraints.append(inv.constraints)
     imu_bias = {name: bias[:, problem.bias_of[name]] for name in problem.imu_streams}
+    model_error = {}
+    if problem.error_dofs.size:
+        offsets = bias[:, problem.bias_of[MODEL_ERROR]]
+        names = dof_names(model)
+        for i, dof in enumerate(problem.error_dofs):
+            model_error[names[dof]] = offsets[:, i]
     residuals, cost_by_type = residuals_by_type(problem, qpos, bias)
     return Estimate(
         t_ns=problem.t_ns,
@@ -363,6 +374,7 @@ def collect_estimate(
         constraints=tuple(constraints),
         model_name=config.model,
         imu_bias=imu_bias,
+        model_error=model_error,
         residuals=residuals,
         cost_by_type=cost_by_type,
     )

@@ -25,6 +25,7 @@ import numpy as np
 import scipy.linalg
 
 from estimator.problem import (
+    MODEL_ERROR,
     KnotModel,
     Problem,
     _RotationDofs,
@@ -230,7 +231,14 @@ class Linearizer:
         w = np.where(known, 1.0 / np.where(known, sigma, 1.0), 0.0)
         r = np.nan_to_num((t.u - p.qfrc_known[1:-1]) * w)
         J = t.Ju * w[:, :, None] if t.Ju is not None else None
-        physics = Block("physics", r, J, np.zeros(K), known)
+        J_offset = None
+        if p.error_dofs.size:  # u − u_known − e_k on the unactuated dofs
+            dofs, cols = p.error_dofs, p.bias_of[MODEL_ERROR]
+            r[:, dofs] -= bias[1:-1, cols] * w[:, dofs]
+            if jac:
+                J_offset = np.zeros((K, p.model.nv, p.nb))
+                J_offset[:, dofs, np.arange(cols.start, cols.stop)] = -w[:, dofs]
+        physics = Block("physics", r, J, np.zeros(K), known, J_offset)
         scale = np.sqrt(np.maximum(known.sum(axis=1), 1))
         out.append(weighted(physics, p.settings.physics_kernel, scale))
         # smoothness prior: a_k / σ_a

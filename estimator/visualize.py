@@ -49,6 +49,7 @@ import rerun.blueprint as rrb
 from estimator.errors import PhysfuseError
 from estimator.estimate import Estimate
 from estimator.logs.reader import Log
+from estimator.problem import dof_names
 from physics.cone import Branch
 
 # A contact force equal to the model's weight (total mass · |g|) is drawn this long, in metres.
@@ -257,25 +258,6 @@ def build_blueprint(estimate: Estimate, model: mujoco.MjModel) -> rrb.Blueprint:
         rrb.SelectionPanel(state="collapsed"),
         rrb.TimePanel(timeline="time", state="collapsed"),
     )
-
-
-def dof_names(model: mujoco.MjModel) -> list[str]:
-    """(nv,) one name per dof: `<joint>` for hinges and slides, `<joint>_{x,y,z,rx,ry,rz}`
-    for free joints (world translation, body rotation), `<joint>_{rx,ry,rz}` for balls."""
-    names = [""] * model.nv
-    for j in range(model.njnt):
-        joint = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}"
-        kind = model.jnt_type[j]
-        if kind == _J.mjJNT_FREE:
-            suffixes = ["_x", "_y", "_z", "_rx", "_ry", "_rz"]
-        elif kind == _J.mjJNT_BALL:
-            suffixes = ["_rx", "_ry", "_rz"]
-        else:
-            suffixes = [""]
-        adr = model.jnt_dofadr[j]
-        for i, suffix in enumerate(suffixes):
-            names[adr + i] = joint + suffix
-    return names
 
 
 def contact_forces_world(estimate: Estimate, k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -21,12 +21,14 @@ from estimator.truth import at_times, read_ground_truth
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _window(name: str, first: int, knots: int, method: str = "physics") -> tuple:
+def _window(
+    name: str, first: int, knots: int, method: str = "physics", model_error_std: float = 0.0
+) -> tuple:
     """(problem, qpos, bias) of a short window of a sample recording, away from its start."""
     config = load_config(ROOT / "configs" / f"{name}.toml", extra_sections=("estimator",))
     log = read_log(ROOT / "recordings" / f"{name}.mcap", config)
     # no robust reweighting: J is the residual's derivative
-    settings = Settings(huber_k=1e12, method=method)
+    settings = Settings(huber_k=1e12, method=method, model_error_std=model_error_std)
     h = float(config.load_model().opt.timestep)
     t_ns = knot_grid(log.measurements, h)[first : first + knots]
     problem = build_problem(config, log.measurements, settings, t_ns)
@@ -42,13 +44,15 @@ def _window(name: str, first: int, knots: int, method: str = "physics") -> tuple
         ("arm_box", 1200, "physics"),
         ("quadruped_trot", 200, "physics"),
         ("quadruped_trot", 200, "kinematic"),
+        ("humanoid_push", 100, "physics+model_error"),
     ],
 )
 def test_factor_jacobians_match_numerical_differentiation_on_the_manifold(name, first, method):
-    """Every row of knot k (physics, prior, each sensor: vectors, quaternions, IMU with bias,
-    force/torque; the kinematic method's jerk prior, reaching z_{k+2}) against central
-    differences of q ⊕ x and b + δ."""
-    problem, qpos, bias = _window(name, first, 12, method)
+    """Every row of knot k (physics, also with the model-error offset; prior; each sensor:
+    vectors, quaternions, IMU with bias, force/torque; the kinematic method's jerk prior,
+    reaching z_{k+2}) against central differences of q ⊕ x and b + δ."""
+    method, _, error = method.partition("+")  # + the generalized force offset
+    problem, qpos, bias = _window(name, first, 12, method, 50.0 if error else 0.0)
     lin = Linearizer(problem)
     k = 6
 
@@ -89,8 +93,9 @@ def test_factor_jacobians_match_numerical_differentiation_on_the_manifold(name, 
 def test_banded_normal_equations_and_marginals_match_the_dense_system():
     """BandedSystem (JᵀJ by key blocks, bias prior and walk, LAPACK band storage, damped step,
     GTSAM marginals) against the dense normal equations of the same rows."""
-    for method in ("physics", "kinematic"):  # bandwidth 2 and 3 keys
-        problem, qpos, bias = _window("humanoid_push", 100, 10, method)
+    for method, error in (("physics", 0.0), ("kinematic", 0.0), ("physics", 50.0)):
+        # bandwidth 2 and 3 keys; with the model-error offset
+        problem, qpos, bias = _window("humanoid_push", 100, 10, method, error)
         lin = Linearizer(problem)
         try:
             r, J = lin.jacobian(qpos, bias)
@@ -115,7 +120,11 @@ def test_banded_normal_equations_and_marginals_match_the_dense_system():
             s, ab = system.scaled_band()
             lam = 1e-3
             dx = system.damped_step(s, ab, lam)
-            expected = np.linalg.solve(H + lam * np.diag(np.diag(H)), -g)
+            # (H + λ D) dx = −g with D = diag H + 1e-12 max(diag H) (the scaling's floor:
+            # contacts put diag H near 1e14), solved in the scaled form
+            D = np.diag(H) + 1e-12 * max(np.diag(H).max(), 1.0)
+            c = 1.0 / np.sqrt(D)
+            expected = c * np.linalg.solve(c[:, None] * H * c + lam * np.eye(len(c)), -c * g)
             scale = np.abs(expected).max()  # contacts make H stiff (≈1e12): compare to scale
             np.testing.assert_allclose(dx.reshape(-1), expected, rtol=0, atol=1e-5 * scale)
             std = system.marginal_std(nv, [])
