@@ -25,7 +25,7 @@ class Estimate:
                    (free joint: world position m, body-frame rotation rad; hinge rad; slide m)
     constraints:   T entries: every contact/constraint impulse at knot k (physics.result)
     imu_bias:      stream name → (T, 6) accelerometer bias (m/s²) then gyro bias (rad/s)
-    model_error:   unactuated dof ("root[2]") → (T,) the generalized force offset e_k that the
+    model_error:   unactuated dof ("root_z") → (T,) the generalized force offset e_k that the
                    model needed to explain the motion (N or N·m; the setting model_error_std)
     residuals:     factor type ("physics", a stream name, …) → (T, k) whitened residuals
                    at each knot (NaN where the knot has no such factor)

@@ -220,7 +220,8 @@ class Problem:
     imu_streams: list[str] = field(default_factory=list)
     bias_walk: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (nb,) per √s
     bias_prior: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (nb,) σ of b_0
-    bias_of: dict[str, slice] = field(default_factory=dict)  # stream → its 6 bias dims
+    # stream → its 6 bias dims; MODEL_ERROR → the offset's dims (one per error_dofs entry)
+    bias_of: dict[str, slice] = field(default_factory=dict)
     # unactuated dofs with a model-error offset, its bias dims bias_of[MODEL_ERROR]
     error_dofs: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
 

@@ -357,10 +357,9 @@ def collect_estimate(
     imu_bias = {name: bias[:, problem.bias_of[name]] for name in problem.imu_streams}
     model_error = {}
     if problem.error_dofs.size:
-        offsets = bias[:, problem.bias_of[MODEL_ERROR]]
         names = dof_names(model)
-        for i, dof in enumerate(problem.error_dofs):
-            model_error[names[dof]] = offsets[:, i]
+        offsets = bias[:, problem.bias_of[MODEL_ERROR]].T
+        model_error = {names[dof]: e for dof, e in zip(problem.error_dofs, offsets, strict=True)}
     residuals, cost_by_type = residuals_by_type(problem, qpos, bias)
     return Estimate(
         t_ns=problem.t_ns,

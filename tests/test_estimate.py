@@ -14,7 +14,7 @@ from estimator.cli import main
 from estimator.config import load_config
 from estimator.logs import read_log
 from estimator.problem import Settings, build_problem, knot_grid, retract
-from estimator.run import initial_trajectory
+from estimator.run import collect_estimate, initial_trajectory
 from estimator.smoother import BandedSystem, Linearizer
 from estimator.truth import at_times, read_ground_truth
 
@@ -134,6 +134,21 @@ def test_banded_normal_equations_and_marginals_match_the_dense_system():
             np.testing.assert_allclose(std, expected_std, rtol=1e-5)
         finally:
             lin.close()
+
+
+def test_model_error_offset_is_on_the_unactuated_dofs_and_reported_by_name():
+    """model_error_std adds one offset per unactuated dof (the humanoid's free joint) after the
+    IMU bias; collect_estimate reports each under its dof's name."""
+    problem, qpos, bias = _window("humanoid_push", 100, 10, "physics", 50.0)
+    assert problem.error_dofs.tolist() == [0, 1, 2, 3, 4, 5]
+    assert problem.bias_of["model error"] == slice(6, 12) and problem.nb == 12
+    config = load_config(ROOT / "configs" / "humanoid_push.toml", extra_sections=("estimator",))
+    std = np.full((problem.T, problem.model.nv), np.nan)
+    est = collect_estimate(problem, qpos, bias, std, config)
+    assert list(est.model_error) == ["root_x", "root_y", "root_z", "root_rx", "root_ry", "root_rz"]
+    np.testing.assert_array_equal(est.model_error["root_z"], bias[:, 8])
+    off, _, _ = _window("humanoid_push", 100, 10, "physics")
+    assert off.nb == 6 and not off.error_dofs.size
 
 
 def test_difference_jacobians_of_rotations():
