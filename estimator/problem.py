@@ -73,6 +73,11 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
     "window_s": (4.0, "length of one smoothing window, s"),
     "overlap_s": (0.5, "overlap of consecutive windows, s"),
     "max_iterations": (30, "Levenberg–Marquardt iterations per window"),
+    "init": (
+        "measurements",
+        "where each window's iterations start: measurements (interpolated to the knots) | "
+        "kinematic (the kinematic smoother's solution of the window)",
+    ),
     "tolerance": (1e-3, "stop when an iteration lowers the cost by less than this fraction"),
     "model_error_std": (
         0.0,
@@ -92,6 +97,7 @@ CHOICES: Mapping[str, tuple[str, ...]] = {
     "sensor_kernel": ("huber", "cauchy"),
     "force_sensor_kernel": ("huber", "cauchy"),
     "jerk_kernel": ("none", "huber", "cauchy"),
+    "init": ("measurements", "kinematic"),
 }
 MODEL_ERROR = "model error"  # Problem.bias_of key of the generalized force offset
 # the kinematic baseline: no physics factors; a constant-acceleration (white jerk) prior with
@@ -116,6 +122,7 @@ class Settings:
     window_s: float = 4.0
     overlap_s: float = 0.5
     max_iterations: int = 30
+    init: str = "measurements"
     tolerance: float = 1e-3
     model_error_std: float = 0.0
     model_error_walk: float = 1.0

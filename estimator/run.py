@@ -111,7 +111,15 @@ def smooth(
         assert bias is not None
         init_q = qpos[s:e].copy()
         init_q[: max(0, kept_until - s)] = qpos[s:kept_until]
-        result = solve_window(problem, init_q, bias[s:e].copy())
+        init_b = bias[s:e].copy()
+        stages = []
+        if settings.init == "kinematic" and settings.method == "physics":
+            kinematic = replace(settings, method="kinematic", model_error_std=0.0)
+            first = build_problem(config, window, kinematic, t_ns[s:e], compiled)
+            stages.append(solve_window(first, init_q, init_b[:, : first.nb], covariance=False))
+            init_q, init_b[:, : first.nb] = stages[0].qpos, stages[0].bias
+        result = solve_window(problem, init_q, init_b)
+        stages.append(result)
         last = e == T
         keep_from = s if i == 0 else s + overlap // 2
         keep_to = e if last else e - overlap // 2
@@ -122,11 +130,12 @@ def smooth(
             qpos[keep_to:e] = result.qpos[keep_to - s :]
         kept_until = keep_to
         warnings.extend(f"window {i + 1}: {w}" for w in result.warnings)
-        iterations.append(result.iterations)
-        passes["linearizations"] += result.linearizations
-        passes["evaluations"] += result.evaluations
-        passes["knots_linearized"] += result.linearizations * (e - s - 2)
-        passes["knots_evaluated"] += result.evaluations * (e - s - 2)
+        iterations.append(sum(r.iterations for r in stages))
+        for r in stages:
+            passes["linearizations"] += r.linearizations
+            passes["evaluations"] += r.evaluations
+            passes["knots_linearized"] += r.linearizations * (e - s - 2)
+            passes["knots_evaluated"] += r.evaluations * (e - s - 2)
         converged.append(result.converged)
         if progress:
             progress(i + 1, len(starts))

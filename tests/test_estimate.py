@@ -271,6 +271,29 @@ def test_estimate_reports_a_model_that_does_not_explain_the_motion(estimated, tm
     assert not any("does not explain" in w for w in summary["warnings"])
 
 
+def test_init_kinematic_starts_the_physics_from_the_kinematic_smoother(estimated, tmp_path, capsys):
+    """init = "kinematic": each window is first solved without physics; the physics solve that
+    follows still converges and beats the measurements. A misspelt choice is a one-line error."""
+    _, log, config = estimated
+    kinematic = tmp_path / "kinematic.toml"
+    kinematic.write_text(config.read_text() + '\n[estimator]\ninit = "kinematic"\n')
+    out = tmp_path / "out"
+    argv = ["estimate", str(log), "--config", str(kinematic), "--out", str(out), "--quiet"]
+    assert main(argv) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["settings"]["init"] == "kinematic" and all(summary["converged"])
+    accuracy = summary["accuracy_vs_ground_truth"]
+    for metric in ("joint_deg", "torso_pos_mm", "torso_rot_deg"):
+        assert accuracy["estimate"][metric] < accuracy["raw"][metric], metric
+    assert accuracy["estimate"]["torso_pos_mm"] < 2.0
+    typo = tmp_path / "typo.toml"
+    typo.write_text(config.read_text() + '\n[estimator]\ninit = "kinematc"\n')
+    capsys.readouterr()
+    assert main(["estimate", str(log), "--config", str(typo), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "estimator.init = 'kinematc'" in err
+
+
 def test_bad_settings_and_missing_logs_are_one_line_errors(estimated, tmp_path, capsys):
     _, log, config = estimated
     bad = tmp_path / "bad.toml"
