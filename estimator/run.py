@@ -114,8 +114,10 @@ def smooth(
         init_b = bias[s:e].copy()
         stages = []
         if settings.init == "kinematic" and settings.method == "physics":
-            kinematic = replace(settings, method="kinematic", model_error_std=0.0)
-            first = build_problem(config, window, kinematic, t_ns[s:e], compiled)
+            # (its bias dims are the physics problem's first: no model-error offset)
+            first = build_problem(
+                config, window, replace(settings, method="kinematic"), t_ns[s:e], compiled
+            )
             stages.append(solve_window(first, init_q, init_b[:, : first.nb], covariance=False))
             init_q, init_b[:, : first.nb] = stages[0].qpos, stages[0].bias
         result = solve_window(problem, init_q, init_b)
@@ -130,7 +132,7 @@ def smooth(
             qpos[keep_to:e] = result.qpos[keep_to - s :]
         kept_until = keep_to
         warnings.extend(f"window {i + 1}: {w}" for w in result.warnings)
-        iterations.append(sum(r.iterations for r in stages))
+        iterations.append(sum(r.iterations for r in stages))  # both stages' count
         for r in stages:
             passes["linearizations"] += r.linearizations
             passes["evaluations"] += r.evaluations
