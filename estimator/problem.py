@@ -85,6 +85,17 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
         "error (weight, contact softness), N or N·m (0: none)",
     ),
     "model_error_walk": (1.0, "random walk of that offset, N/√s or N·m/√s"),
+    "contact_forces": (
+        "balanced",
+        "contact forces reported: model (the analytic inverse's at the estimate) | balanced "
+        "(those plus the least-squares correction that closes the physics residual where the "
+        "force is known)",
+    ),
+    "contact_force_std": (
+        1.0,
+        "σ of that correction per contact force component, in units of the robot's weight "
+        "(0: no correction)",
+    ),
     "bias_prior_accel": (0.5, "σ of the first accelerometer bias, m/s²"),
     "bias_prior_gyro": (0.05, "σ of the first gyro bias, rad/s"),
     "fd_eps": (1e-6, "finite-difference step of mjd_inverseFD"),
@@ -98,6 +109,7 @@ CHOICES: Mapping[str, tuple[str, ...]] = {
     "force_sensor_kernel": ("huber", "cauchy"),
     "jerk_kernel": ("none", "huber", "cauchy"),
     "init": ("measurements", "kinematic"),
+    "contact_forces": ("balanced", "model"),
 }
 MODEL_ERROR = "model error"  # Problem.bias_of key of the generalized force offset
 # the kinematic baseline: no physics factors; a constant-acceleration (white jerk) prior with
@@ -126,6 +138,8 @@ class Settings:
     tolerance: float = 1e-3
     model_error_std: float = 0.0
     model_error_walk: float = 1.0
+    contact_forces: str = "balanced"
+    contact_force_std: float = 1.0
     bias_prior_accel: float = 0.5
     bias_prior_gyro: float = 0.05
     fd_eps: float = 1e-6
@@ -221,7 +235,8 @@ class Problem:
     t_ns: np.ndarray  # (T,) knot times
     blocks: list[SensorBlock]
     qfrc_known: np.ndarray  # (T, nv), NaN where no force is known
-    physics_sigma: np.ndarray  # (T, nv), inf where the dof is left free
+    known_sigma: np.ndarray  # (T, nv) σ of u − qfrc_known whatever the method, inf where unknown
+    physics_sigma: np.ndarray  # (T, nv) the physics factors' σ, inf where the dof is left free
     settings: Settings
     nb: int  # bias dimensions per knot (6 per IMU and per force/torque stream)
     imu_streams: list[str] = field(default_factory=list)
@@ -420,9 +435,9 @@ def build_problem(
             )
             bias_of[name] = slice(nb, nb + 6)
             nb += 6
-    qfrc_known, sigma, actuated = _known_forces(model, config, measurements, t_ns, settings)
-    if settings.method == "kinematic":
-        sigma[:] = np.inf  # no physics factor anywhere
+    qfrc_known, known_sigma, actuated = _known_forces(model, config, measurements, t_ns, settings)
+    # the kinematic method: no physics factor anywhere
+    sigma = np.full_like(known_sigma, np.inf) if settings.method == "kinematic" else known_sigma
     error_dofs = np.zeros(0, int)
     if settings.method == "physics" and settings.model_error_std > 0:
         error_dofs = np.flatnonzero(~actuated)
@@ -438,6 +453,7 @@ def build_problem(
         t_ns,
         blocks,
         qfrc_known,
+        known_sigma,
         sigma,
         settings,
         nb,

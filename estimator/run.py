@@ -13,6 +13,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from estimator.config import Config
+from estimator.contact_forces import balanced_constraints
 from estimator.estimate import Estimate
 from estimator.logs.measurements import Measurement
 from estimator.problem import (
@@ -353,18 +354,32 @@ def collect_estimate(
     problem: Problem, qpos: np.ndarray, bias: np.ndarray, std: np.ndarray, config: Config
 ) -> Estimate:
     """The Estimate of a trajectory qpos (T, nq) with IMU biases (T, nb) on problem's knots:
-    v, a by finite differences, forces and impulses by the native analytic inverse, residuals
-    of every factor. std: (T, nv) marginal standard deviations (NaN where unknown)."""
+    v, a by finite differences, forces and impulses by the native analytic inverse (contact
+    impulses balanced unless settings.contact_forces = "model": estimator.contact_forces),
+    residuals of every factor. std: (T, nv) marginal standard deviations (NaN where unknown)."""
     model, h = problem.model, problem.h
     v = velocities(model, qpos, h)
     a = accelerations(v, h)
     dyn = make_dynamics(model, "native")
     qfrc = np.full((problem.T, model.nv), np.nan)
     constraints = []
+    balance = (
+        problem.settings.contact_forces == "balanced" and problem.settings.contact_force_std > 0
+    )
+    weight = float(np.sum(model.body_mass) * np.linalg.norm(model.opt.gravity))
+    force_std = problem.settings.contact_force_std * weight
+    data = mujoco.MjData(model)
     for k in range(problem.T):
         inv = dyn.inverse(qpos[k], v[k], a[k])
         qfrc[k] = inv.qfrc_inverse
-        constraints.append(inv.constraints)
+        c = inv.constraints
+        if balance and 0 < k < problem.T - 1:  # (v, a at the end knots are not the motion's)
+            data.qpos[:] = qpos[k]
+            mujoco.mj_kinematics(model, data)
+            mujoco.mj_comPos(model, data)
+            residual = qfrc[k] - problem.qfrc_known[k]
+            c = balanced_constraints(model, data, c, residual, problem.known_sigma[k], force_std)
+        constraints.append(c)
     imu_bias = {name: bias[:, problem.bias_of[name]] for name in problem.imu_streams}
     model_error = {}
     if problem.error_dofs.size:

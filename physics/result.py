@@ -32,6 +32,7 @@ class Contacts:
     dim:         (ncon,) MuJoCo condim 1/3/4/6 (= 1 + d)
     geom:        (ncon, 2) geom ids of the pair
     efc_address: (ncon,) first constraint row of each contact, −1 if excluded
+    friction:    (ncon, 5) μ: tangential 1, tangential 2, torsional, rolling 1, rolling 2
     """
 
     pos: np.ndarray
@@ -39,6 +40,7 @@ class Contacts:
     dim: np.ndarray
     geom: np.ndarray
     efc_address: np.ndarray
+    friction: np.ndarray
 
     @classmethod
     def from_data(cls, d: mujoco.MjData) -> Contacts:
@@ -49,6 +51,7 @@ class Contacts:
             dim=c.dim.copy(),
             geom=c.geom.copy(),
             efc_address=c.efc_address.copy(),
+            friction=c.friction.copy(),
         )
 
 
