@@ -69,9 +69,9 @@ def balanced_constraints(
     change.
     """
     contacts = constraints.contacts
-    active = np.flatnonzero(contacts.efc_address >= 0)
+    active = [int(i) for i in np.flatnonzero(contacts.efc_address >= 0)]
     known = np.isfinite(residual) & np.isfinite(sigma)
-    if not active.size or not known.any():
+    if not active or not known.any():
         return constraints
     rows = [min(int(contacts.dim[i]), 3) for i in active]
     jac = np.vstack(
