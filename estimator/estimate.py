@@ -23,7 +23,9 @@ class Estimate:
                    actuators (NaN on dofs with no known force)
     qpos_std:      (T, nv) marginal standard deviation of q_k in MuJoCo's tangent space
                    (free joint: world position m, body-frame rotation rad; hinge rad; slide m)
-    constraints:   T entries: every contact/constraint impulse at knot k (physics.result)
+    constraints:   T entries: every contact/constraint impulse at knot k (physics.result);
+                   the contacts' balanced against the known forces (settings.contact_forces;
+                   estimator.contact_forces), so qfrc_inverse is the model's u, before that
     imu_bias:      stream name → (T, 6) accelerometer bias (m/s²) then gyro bias (rad/s)
     model_error:   unactuated dof ("root_z") → (T,) the generalized force offset e_k that the
                    model needed to explain the motion (N or N·m; the setting model_error_std)

@@ -19,6 +19,7 @@ import mujoco
 import numpy as np
 
 from estimator.truth import Series, StateTopics, at_times
+from physics.model import weight as model_weight
 
 TRIM_KNOTS = 2
 CONTACT_WEIGHT_FRACTION = 0.01  # "in contact": net contact force above 1% of the weight
@@ -189,7 +190,7 @@ def compare_states(
                 "occluded_orientation_deg": float(np.degrees(rmse(errors["rot"][hidden]))),
             }
     joints, joint_errors = _joint_errors(est, truth, model, trim)
-    weight = float(np.sum(model.body_mass) * np.linalg.norm(model.opt.gravity))
+    weight = model_weight(model)
     contacts, contact_errors, flags = _contact_errors(est, truth, weight, trim)
     imu, bias_errors = _bias_errors(est, truth, trim)
 

@@ -30,6 +30,7 @@ from estimator.problem import (
 )
 from estimator.smoother import Linearizer, solve_window
 from physics.dynamics import make_dynamics
+from physics.model import weight as model_weight
 
 _OBJ = mujoco.mjtObj
 
@@ -366,8 +367,7 @@ def collect_estimate(
     balance = (
         problem.settings.contact_forces == "balanced" and problem.settings.contact_force_std > 0
     )
-    weight = float(np.sum(model.body_mass) * np.linalg.norm(model.opt.gravity))
-    force_std = problem.settings.contact_force_std * weight
+    force_std = problem.settings.contact_force_std * model_weight(model)
     data = mujoco.MjData(model)
     for k in range(problem.T):
         inv = dyn.inverse(qpos[k], v[k], a[k])

@@ -51,6 +51,7 @@ from estimator.estimate import Estimate
 from estimator.logs.reader import Log
 from estimator.problem import dof_names
 from physics.cone import Branch
+from physics.model import weight as model_weight
 
 # A contact force equal to the model's weight (total mass · |g|) is drawn this long, in metres.
 FORCE_SCALE_M_PER_WEIGHT = 1.0
@@ -243,7 +244,7 @@ def build_blueprint(estimate: Estimate, model: mujoco.MjModel) -> rrb.Blueprint:
             )
         )
     tabs.append(rrb.TimeSeriesView(origin="plots/uncertainty", name="qpos std (m, rad)"))
-    weight = _weight_n(model)
+    weight = model_weight(model)
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial3DView(
@@ -337,7 +338,7 @@ def _log_contacts(
     rec: rr.RecordingStream, model: mujoco.MjModel, estimate: Estimate, knots: np.ndarray
 ) -> None:
     """Contact arrows and points per knot, and the net normal force on each body."""
-    scale = FORCE_SCALE_M_PER_WEIGHT / max(_weight_n(model), 1e-9)
+    scale = FORCE_SCALE_M_PER_WEIGHT / max(model_weight(model), 1e-9)
     counts = np.zeros(estimate.T, dtype=np.int64)
     origins, vectors, colors, labels = [], [], [], []
     normal_force: dict[int, np.ndarray] = {}
@@ -551,11 +552,6 @@ def _body_poses(model: mujoco.MjModel, qpos: np.ndarray) -> tuple[np.ndarray, np
         xpos[k] = d.xpos
         xquat[k] = d.xquat
     return xpos, xquat
-
-
-def _weight_n(model: mujoco.MjModel) -> float:
-    """Total mass · |gravity|, N."""
-    return float(model.body_subtreemass[0] * np.linalg.norm(model.opt.gravity))
 
 
 # -- names, times, conventions ----------------------------------------------------------------

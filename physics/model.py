@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import mujoco
+import numpy as np
 
 from physics.errors import UnsupportedModelError
 
@@ -37,3 +38,8 @@ def load_model(name_or_path: str | Path) -> mujoco.MjModel:
         return mujoco.MjModel.from_xml_path(str(path))
     except ValueError as err:
         raise UnsupportedModelError(f"{path}: {err}") from err
+
+
+def weight(model: mujoco.MjModel) -> float:
+    """The model's weight: total mass · |gravity|, N."""
+    return float(model.body_subtreemass[0] * np.linalg.norm(model.opt.gravity))

@@ -135,7 +135,7 @@ def test_compare_states_recovers_known_offsets_against_a_sparser_truth():
     assert s["contact_precision"] == in_contact["precision"]
     assert 4.5 < s["contact_force_N"] < weight / 2
     assert s["contact_force_pct_weight"] == pytest.approx(100 * s["contact_force_N"] / weight)
-    assert metrics["contact_threshold_N"] == CONTACT_WEIGHT_FRACTION * weight
+    assert metrics["contact_threshold_N"] == pytest.approx(CONTACT_WEIGHT_FRACTION * weight)
     assert s["imu_accel_bias_mps2"] == pytest.approx(0.02) and s["imu_gyro_bias_dps"] == 0.0
     assert s["occluded_s"] == pytest.approx(0.2)
     assert s["occluded_position_mm"] == pytest.approx(1.0)
