@@ -46,6 +46,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from estimator.evaluate import TRAJECTORY_KEYS  # noqa: E402
 from estimator.simulate import SCENARIOS  # noqa: E402
 from estimator.simulate.conditions import CONDITIONS  # noqa: E402
 
@@ -74,14 +75,7 @@ METRICS: Mapping[str, tuple[str, bool]] = {
     "occluded_s": ("occ s", True),
     "wall_over_duration": ("wall/T", True),
 }
-BEATS_BASELINES = (
-    "position_mm",
-    "orientation_deg",
-    "joint_deg",
-    "linear_velocity_mps",
-    "angular_velocity_dps",
-    "joint_velocity_dps",
-)
+BEATS_BASELINES = TRAJECTORY_KEYS
 OCCLUDED = ("occluded_position_mm", "occluded_orientation_deg")
 OCCLUSION_RATIO = 1.0 / 3.0  # physics ≤ this × kinematic during occlusions
 FORCE_PCT_WEIGHT = 10.0  # physics net contact force RMSE ≤ this % of m·g, nominal condition

@@ -12,7 +12,7 @@ sqrt(mean_n ‖e_n‖²); of scalars (joint angles) sqrt(mean e²) over every en
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import mujoco
@@ -25,13 +25,16 @@ TRIM_KNOTS = 2
 CONTACT_WEIGHT_FRACTION = 0.01  # "in contact": net contact force above 1% of the weight
 OCCLUSION_GAP_PERIODS = 2.5  # a mocap gap longer than this many sample periods: occluded
 
-SUMMARY_KEYS = (
+TRAJECTORY_KEYS = (  # the motion's errors: pose, joint angles, velocities
     "position_mm",
     "orientation_deg",
     "joint_deg",
     "linear_velocity_mps",
     "angular_velocity_dps",
     "joint_velocity_dps",
+)
+SUMMARY_KEYS = (
+    *TRAJECTORY_KEYS,
     "contact_force_N",
     "contact_force_pct_weight",
     "contact_precision",
@@ -136,6 +139,16 @@ def _matched(
     return t[ok], values[ok], at_times(truth.t_ns, truth.values, t[ok])
 
 
+def _matched_by_name(
+    est: Mapping[str, Series], truth: Mapping[str, Series], trim: int
+) -> Iterator[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+    """(name, t_ns, estimate values, truth values) of each name both hold, by `_matched`."""
+    for name in sorted(set(est) & set(truth)):
+        m = _matched(est[name], truth[name], trim)
+        if m is not None:
+            yield name, *m
+
+
 def compare_states(
     est: StateTopics,
     truth: StateTopics,
@@ -156,11 +169,7 @@ def compare_states(
     occluded: dict[str, list[np.ndarray]] = {"pos": [], "rot": []}
     occluded_ns = 0
     bodies = {}
-    for body in sorted(set(est.odometry) & set(truth.odometry)):
-        m = _matched(est.odometry[body], truth.odometry[body], trim)
-        if m is None:
-            continue
-        t, e, g = m
+    for body, t, e, g in _matched_by_name(est.odometry, truth.odometry, trim):
         errors = {
             "pos": e[:, :3] - g[:, :3],
             "rot": rotation_angles(e[:, 3:7], g[:, 3:7]),
@@ -266,11 +275,7 @@ def _contact_errors(
     details: dict[str, Any] = {}
     errors: list[np.ndarray] = []
     flags: dict[str, list[np.ndarray]] = {"est": [], "truth": []}
-    for body in sorted(set(est.contact_wrench) & set(truth.contact_wrench)):
-        m = _matched(est.contact_wrench[body], truth.contact_wrench[body], trim)
-        if m is None:
-            continue
-        _, e, g = m
+    for body, _, e, g in _matched_by_name(est.contact_wrench, truth.contact_wrench, trim):
         touching_est, touching_truth = (
             in_contact(e[:, :3], threshold),
             in_contact(g[:, :3], threshold),
@@ -297,11 +302,7 @@ def _bias_errors(
     """Per IMU bias RMSE (accelerometer m/s², gyro deg/s), matched by name."""
     details: dict[str, Any] = {}
     errors: dict[str, list[np.ndarray]] = {"accel": [], "gyro": []}
-    for name in sorted(set(est.imu_bias) & set(truth.imu_bias)):
-        m = _matched(est.imu_bias[name], truth.imu_bias[name], trim)
-        if m is None:
-            continue
-        _, e, g = m
+    for name, _, e, g in _matched_by_name(est.imu_bias, truth.imu_bias, trim):
         errors["accel"].append(e[:, :3] - g[:, :3])
         errors["gyro"].append(e[:, 3:] - g[:, 3:])
         details[name] = {
