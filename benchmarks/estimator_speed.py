@@ -6,8 +6,11 @@ linearization it needs, and peak memory.
 Simulates an M-minute humanoid_push log (default 10, in a separate process), estimates it, and
 measures in the same run the bare cost of the MuJoCo work the solve needed: the same number of
 knot passes of mjd_inverseFD (with Jacobians) and mj_inverse (without) — the MuJoCo calls
-alone, on the same 2 threads. Prints a table and writes DIR/estimator_speed.json. Peak memory
-is this process's maximum RSS (reading the log and estimating).
+alone, on the same 2 threads, timed over every knot of the log before the estimate (at the
+interpolated measurements) and after it (at the estimate), their mean; both are reported,
+since a shared machine's speed drifts. Prints a table and
+writes DIR/estimator_speed.json. Peak memory is this process's maximum RSS (reading the log,
+timing and estimating).
 """
 
 from __future__ import annotations
@@ -37,14 +40,19 @@ from estimator.run import estimate, initial_trajectory
 from estimator.smoother import THREADS
 
 
-def bare_pass_seconds(config, measurements, settings: Settings, knots: int) -> tuple[float, float]:
-    """Wall seconds per knot of the MuJoCo calls of one pass, with and without Jacobians, on
-    the estimator's THREADS threads."""
+def bare_pass_seconds(
+    config, measurements, settings: Settings, qpos: np.ndarray | None = None
+) -> tuple[float, float]:
+    """Wall seconds per knot of the MuJoCo calls of one pass over every knot of the log (at
+    qpos, or the interpolated measurements), with and without Jacobians, on the estimator's
+    THREADS threads. (Their cost varies along a log with the number of contacts: on humanoid_push's
+    first 400 knots mjd_inverseFD costs 25% more than on average.)"""
     h = float(config.load_model().opt.timestep)
-    t_ns = knot_grid(measurements, h)[:knots]
+    t_ns = knot_grid(measurements, h)
     problem = build_problem(config, measurements, settings, t_ns)
     model = problem.model
-    qpos = initial_trajectory(model, measurements, t_ns)
+    if qpos is None:
+        qpos = initial_trajectory(model, measurements, t_ns)
     v = velocities(model, qpos, h)
     a = accelerations(v, h)
     workers = [KnotModel(problem) for _ in range(THREADS)]
@@ -59,15 +67,15 @@ def bare_pass_seconds(config, measurements, settings: Settings, knots: int) -> t
                 worker.jacobians(qpos[k], v[k], a[k], *outs)
 
     interior = range(1, len(t_ns) - 1)
-    chunks = [interior[i::THREADS] for i in range(THREADS)]
     seconds = []
     with ThreadPoolExecutor(THREADS) as pool:
         for jac in (True, False):
-            list(pool.map(work, chunks, workers, [jac] * THREADS))  # warm up
+            warm_up = [interior[:200][i::THREADS] for i in range(THREADS)]
+            list(pool.map(work, warm_up, workers, [jac] * THREADS))
+            chunks = [interior[i::THREADS] for i in range(THREADS)]
             start = time.perf_counter()
-            for _ in range(3):
-                list(pool.map(work, chunks, workers, [jac] * THREADS))
-            seconds.append((time.perf_counter() - start) / 3 / len(interior))
+            list(pool.map(work, chunks, workers, [jac] * THREADS))
+            seconds.append((time.perf_counter() - start) / len(interior))
     return seconds[0], seconds[1]
 
 
@@ -104,11 +112,15 @@ def main() -> None:
     measurements = read_log(log, config).measurements
     read_s = time.perf_counter() - start
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    # the bare passes before and after the estimate: a shared machine's speed drifts by tens
+    # of percent within minutes
+    bare_before = np.array(bare_pass_seconds(config, measurements, settings))
     start = time.perf_counter()
-    _, summary = estimate(config, measurements, settings)
+    est, summary = estimate(config, measurements, settings)
     wall = time.perf_counter() - start
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    per_jac, per_eval = bare_pass_seconds(config, measurements, settings, 400)
+    bare_after = np.array(bare_pass_seconds(config, measurements, settings, est.qpos))
+    per_jac, per_eval = (bare_before + bare_after) / 2
     bare = per_jac * summary.knots_linearized + per_eval * summary.knots_evaluated
     result = {
         "log_duration_s": float(summary.duration_s),
@@ -123,6 +135,7 @@ def main() -> None:
         "overhead_over_bare_mujoco": wall / bare,
         "mjd_inverseFD_us_per_knot": 1e6 * per_jac,
         "mj_inverse_us_per_knot": 1e6 * per_eval,
+        "mjd_inverseFD_us_per_knot_before_after": [1e6 * bare_before[0], 1e6 * bare_after[0]],
         "peak_rss_mb": peak_mb,
         "rss_before_estimate_mb": rss_before,
         "converged_windows": int(np.sum(summary.converged)),
@@ -138,6 +151,11 @@ def main() -> None:
             "bare MuJoCo work",
             f"{bare:.1f} s ({summary.linearizations} linearizations, "
             f"{summary.evaluations} evaluations)",
+        ),
+        (
+            "bare pass per knot",
+            f"{1e6 * bare_before[0]:.0f} µs before, {1e6 * bare_after[0]:.0f} µs after the "
+            "estimate (mjd_inverseFD + mj_inverse; after: at the estimate)",
         ),
         ("overhead over bare MuJoCo", f"{result['overhead_over_bare_mujoco']:.2f}×"),
         ("peak memory (max RSS)", f"{peak_mb:.0f} MB"),
