@@ -59,10 +59,14 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
     "physics_std_actuated": (20.0, "σ of u − (actuator force of the commands), N or N·m"),
     "accel_prior_std": (200.0, "σ of the smoothness prior on a_k, units/s²"),
     "jerk_prior_std": (
-        0.0,
+        1000.0,
         "σ of a constant-acceleration prior on (a_{k+1} − a_k)/h, units/s³ (0: none)",
     ),
-    "jerk_kernel": ("none", "robust kernel of the jerk prior, per dof: none | huber | cauchy"),
+    "jerk_kernel": (
+        "auto",
+        "robust kernel of the jerk prior, per dof: none | huber | cauchy | auto (physics: "
+        "cauchy, so that impacts get through; kinematic: none)",
+    ),
     "huber_k": (2.0, "robust kernel threshold k on a whitened residual block's norm"),
     "physics_kernel": ("cauchy", "robust kernel of the physics factors: huber | cauchy"),
     "sensor_kernel": ("huber", "robust kernel of the kinematic sensors (mocap, encoders, IMU)"),
@@ -107,14 +111,11 @@ CHOICES: Mapping[str, tuple[str, ...]] = {
     "physics_kernel": ("huber", "cauchy"),
     "sensor_kernel": ("huber", "cauchy"),
     "force_sensor_kernel": ("huber", "cauchy"),
-    "jerk_kernel": ("none", "huber", "cauchy"),
+    "jerk_kernel": ("auto", "none", "huber", "cauchy"),
     "init": ("measurements", "kinematic"),
     "contact_forces": ("balanced", "model"),
 }
 MODEL_ERROR = "model error"  # Problem.bias_of key of the generalized force offset
-# the kinematic baseline: no physics factors; a constant-acceleration (white jerk) prior with
-# σ_j of fast legged-robot motion, set once (not fitted to any recording)
-KINEMATIC_JERK_STD = 1000.0
 
 
 @dataclass(frozen=True)
@@ -125,8 +126,10 @@ class Settings:
     physics_std_unactuated: float = 20.0
     physics_std_actuated: float = 20.0
     accel_prior_std: float = 200.0
-    jerk_prior_std: float = 0.0
-    jerk_kernel: str = "none"
+    # a constant-acceleration (white jerk) prior with σ_j of fast legged-robot motion, set once
+    # (not fitted to any recording); the kinematic baseline's only motion model
+    jerk_prior_std: float = 1000.0
+    jerk_kernel: str = "auto"
     huber_k: float = 2.0
     physics_kernel: str = "cauchy"
     sensor_kernel: str = "huber"
@@ -145,11 +148,11 @@ class Settings:
     fd_eps: float = 1e-6
 
     @property
-    def jerk_std(self) -> float:
-        """σ_j of the constant-acceleration prior (0: none); the kinematic method's default."""
-        if self.jerk_prior_std or self.method != "kinematic":
-            return self.jerk_prior_std
-        return KINEMATIC_JERK_STD
+    def jerk_robust_kernel(self) -> str:
+        """The jerk prior's kernel: "auto" is Cauchy with the physics factors, none without."""
+        if self.jerk_kernel != "auto":
+            return self.jerk_kernel
+        return "cauchy" if self.method == "physics" else "none"
 
     @classmethod
     def from_config(cls, config: Config) -> Settings:

@@ -117,7 +117,7 @@ class Linearizer:
         # a dof where difference Jacobians are ±1 (any dof if all are rotations: overwritten)
         self.vector_dof = min(set(range(problem.model.nv)) - rotation, default=0)
         self.pool = ThreadPoolExecutor(THREADS)
-        self.span = 4 if problem.settings.jerk_std > 0 else 3  # keys a knot's rows reach
+        self.span = 4 if problem.settings.jerk_prior_std > 0 else 3  # keys a knot's rows reach
         self.passes = {True: 0, False: 0}  # MuJoCo passes over all knots, with/without Jacobians
 
     # -- MuJoCo at every knot (threads; MuJoCo releases the GIL) ------------------------------
@@ -247,7 +247,7 @@ class Linearizer:
         J = t.da / sa if t.da is not None else None
         out.append(Block("prior", r, J, 0.5 * np.sum(r**2, axis=1), np.ones(r.shape, bool)))
         if self.span == 4:  # constant-acceleration prior (a_{k+1} − a_k)/(h σ_j), k < T − 2
-            sj = p.h * p.settings.jerk_std
+            sj = p.h * p.settings.jerk_prior_std
             r = np.zeros_like(t.a)
             r[:-1] = (t.a[1:] - t.a[:-1]) / sj
             J = None
@@ -259,11 +259,11 @@ class Linearizer:
             valid = np.ones(r.shape, bool)
             valid[-1] = False
             jerk = Block("jerk prior", r, J, np.zeros(K), valid)
-            if p.settings.jerk_kernel == "none":
+            if p.settings.jerk_robust_kernel == "none":
                 jerk.cost = 0.5 * np.sum(r**2, axis=1)
                 out.append(jerk)
             else:  # per dof: an impact on one leg does not unsmooth the others
-                out.append(weighted(jerk, p.settings.jerk_kernel, group=1))
+                out.append(weighted(jerk, p.settings.jerk_robust_kernel, group=1))
         # sensors, robust
         for sensor in p.blocks:
             meas = sensor.values[1:-1]
@@ -305,24 +305,42 @@ class Linearizer:
         total.update(self.bias_cost(bias))
         return sum(total.values()), total
 
+    def linearize(self, qpos: np.ndarray, bias: np.ndarray) -> list[Block]:
+        """Every factor's whitened, weighted rows at every knot, with their Jacobians."""
+        return self.blocks(self.terms(qpos, True), bias)
+
     def jacobian(self, qpos: np.ndarray, bias: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The whitened, weighted rows of every knot: r (K, m) and J (K, m, span·nz) over
-        (z_{k−1}, z_k, z_{k+1}[, z_{k+2}]), z = (x, b)."""
+        """The same rows dense: r (K, m) and J (K, m, span·nz) over (z_{k−1}, z_k, z_{k+1}[,
+        z_{k+2}]), z = (x, b) (for checks; the solve uses the blocks)."""
         p = self.problem
-        nv, nz = p.model.nv, p.nz
-        blocks = self.blocks(self.terms(qpos, True), bias)
+        nz = p.nz
+        blocks = self.linearize(qpos, bias)
         r = np.concatenate([b.r for b in blocks], axis=1)
         J = np.zeros((p.T - 2, r.shape[1], self.span * nz))
         row = 0
         for b in blocks:
             rows = slice(row, row + b.r.shape[1])
-            assert b.J is not None
-            for key in range(b.J.shape[2] // nv):
-                J[:, rows, key * nz : key * nz + nv] = b.J[:, :, key * nv : (key + 1) * nv]
-            if b.J_bias is not None:
-                J[:, rows, nz + nv : 2 * nz] = b.J_bias
+            J_z, cols = self.z_columns(b)
+            J[:, rows, cols] = J_z
             row = rows.stop
         return r, J
+
+    def z_columns(self, block: Block) -> tuple[np.ndarray, np.ndarray]:
+        """A block's Jacobian on the columns of (z_{k−1}, z_k, …) its rows reach (nonzero at
+        some knot; a mocap row reaches a few of x_k's): (K, m, n) and their n column indices
+        (x of key a: a·nz + dof; the bias b_k: nz + nv + i)."""
+        p = self.problem
+        nv, nz = p.model.nv, p.nz
+        assert block.J is not None
+        x_cols = np.arange(block.J.shape[2])
+        x_cols = x_cols // nv * nz + x_cols % nv
+        reach = np.flatnonzero(np.any(block.J, axis=(0, 1)))
+        J = block.J if len(reach) == len(x_cols) else block.J[:, :, reach]
+        cols = x_cols[reach]
+        if block.J_bias is not None:
+            J = np.concatenate([J, block.J_bias], axis=2)
+            cols = np.r_[cols, nz + nv + np.arange(p.nb)]
+        return J, cols
 
     # -- sensor biases (IMU, force/torque): prior on b_0 and random walk ---------------------
 
@@ -364,17 +382,36 @@ class BandedSystem:
     g: np.ndarray
 
     @classmethod
-    def of(cls, r: np.ndarray, J: np.ndarray, lin: Linearizer, bias: np.ndarray) -> BandedSystem:
+    def of(cls, blocks: list[Block], lin: Linearizer, bias: np.ndarray) -> BandedSystem:
+        """The system of `lin.linearize`'s blocks (and the bias prior and walk)."""
         p = lin.problem
         T, nz, nv, span = p.T, p.nz, p.model.nv, lin.span
         K = T - 2
-        G = np.empty((K, span * nz, span * nz))  # J_kᵀ J_k and J_kᵀ r_k of every knot's rows
-        gk = np.empty((K, span * nz))
+        G = np.zeros((K, span * nz, span * nz))  # J_kᵀ J_k and J_kᵀ r_k of every knot's rows
+        gk = np.zeros((K, span * nz))
+        # each factor on the columns its rows reach (3× fewer products than the dense rows),
+        # added back by runs of consecutive columns (slices: fancy indexing is 5× slower)
+        parts = []
+        for block in blocks:
+            J, cols = lin.z_columns(block)
+            if not len(cols):  # (rows with no measurement in this window)
+                continue
+            starts = np.flatnonzero(np.diff(cols, prepend=-2) != 1)
+            runs = [
+                (slice(i, j), slice(cols[i], cols[i] + j - i))
+                for i, j in zip(starts, [*starts[1:], len(cols)], strict=True)
+            ]
+            parts.append((block.r, J, runs))
 
         def products(c: range) -> None:  # (in threads: numpy releases the GIL)
             i = slice(c.start, c.stop)
-            G[i] = np.einsum("kmi,kmj->kij", J[i], J[i], optimize=True)
-            gk[i] = np.einsum("kmi,km->ki", J[i], r[i], optimize=True)
+            for r, J, runs in parts:
+                Jt = J[i].transpose(0, 2, 1)
+                JtJ, Jtr = Jt @ J[i], (Jt @ r[i, :, None])[:, :, 0]
+                for in_a, z_a in runs:
+                    gk[i, z_a] += Jtr[:, in_a]
+                    for in_b, z_b in runs:
+                        G[i, z_a, z_b] += JtJ[:, in_a, in_b]
 
         list(lin.pool.map(products, lin.chunks(0, K)))
         G_keys = G.reshape(K, span, nz, span, nz)  # [k, a, :, b, :]: keys k − 1 + a, k − 1 + b
@@ -477,8 +514,7 @@ def solve_window(
         it = 0
         system = None
         for it in range(1, p.settings.max_iterations + 1):  # noqa: B007
-            r, J = lin.jacobian(qpos, bias)
-            system = BandedSystem.of(r, J, lin, bias)
+            system = BandedSystem.of(lin.linearize(qpos, bias), lin, bias)
             s, ab = system.scaled_band()
             while True:
                 try:

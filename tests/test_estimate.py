@@ -98,8 +98,8 @@ def test_banded_normal_equations_and_marginals_match_the_dense_system():
         problem, qpos, bias = _window("humanoid_push", 100, 10, method, error)
         lin = Linearizer(problem)
         try:
-            r, J = lin.jacobian(qpos, bias)
-            system = BandedSystem.of(r, J, lin, bias)
+            r, J = lin.jacobian(qpos, bias)  # the dense rows
+            system = BandedSystem.of(lin.linearize(qpos, bias), lin, bias)
             T, nz, nv = problem.T, problem.nz, problem.model.nv
             A = np.zeros((0, T * nz))
             b = np.zeros(0)
