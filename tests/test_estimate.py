@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import mujoco
@@ -334,3 +335,20 @@ def test_initialization_survives_a_dropped_first_frame():
         qpos[:first, :3], np.tile(qpos[first + 1, :3], (first, 1)), atol=0.02
     )
     np.testing.assert_allclose(np.linalg.norm(qpos[:, 3:7], axis=1), 1.0, atol=1e-12)
+
+
+def test_constant_acceleration_prior_defaults_by_method():
+    """Both smoothers get σ_j = 1000 m/s³; its kernel is Cauchy per dof with the physics
+    factors (impacts get through) and none in the kinematic baseline, unless set; 0 turns the
+    prior off (factors reach three knots again)."""
+    assert Settings().jerk_prior_std == Settings(method="kinematic").jerk_prior_std == 1000.0
+    assert Settings().jerk_robust_kernel == "cauchy"
+    assert Settings(method="kinematic").jerk_robust_kernel == "none"
+    assert Settings(method="kinematic", jerk_kernel="huber").jerk_robust_kernel == "huber"
+    problem, _, _ = _window("humanoid_push", 100, 10, "physics", 0.0)
+    spans = []
+    for std in (1000.0, 0.0):
+        lin = Linearizer(replace(problem, settings=replace(problem.settings, jerk_prior_std=std)))
+        spans.append(lin.span)
+        lin.close()
+    assert spans == [4, 3]
