@@ -8,9 +8,8 @@ measures in the same run the bare cost of the MuJoCo work the solve needed: the 
 knot passes of mjd_inverseFD (with Jacobians) and mj_inverse (without) — the MuJoCo calls
 alone, on the same 2 threads, timed over every knot of the log before the estimate (at the
 interpolated measurements) and after it (at the estimate), their mean; both are reported,
-since a shared machine's speed drifts. Prints a table and
-writes DIR/estimator_speed.json. Peak memory is this process's maximum RSS (reading the log,
-timing and estimating).
+since a shared machine's speed drifts. Prints a table and writes DIR/estimator_speed.json.
+Peak memory is this process's maximum RSS (reading the log, timing and estimating).
 """
 
 from __future__ import annotations
@@ -45,8 +44,8 @@ def bare_pass_seconds(
 ) -> tuple[float, float]:
     """Wall seconds per knot of the MuJoCo calls of one pass over every knot of the log (at
     qpos, or the interpolated measurements), with and without Jacobians, on the estimator's
-    THREADS threads. (Their cost varies along a log with the number of contacts: on humanoid_push's
-    first 400 knots mjd_inverseFD costs 25% more than on average.)"""
+    THREADS threads. (Their cost varies along a log: on the 30 s humanoid_push log's first 400
+    knots mjd_inverseFD cost 25% more than over the whole log.)"""
     h = float(config.load_model().opt.timestep)
     t_ns = knot_grid(measurements, h)
     problem = build_problem(config, measurements, settings, t_ns)
