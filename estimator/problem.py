@@ -697,20 +697,21 @@ class _RotationDofs:
 def difference_jacobians(
     model: mujoco.MjModel, rotations: _RotationDofs, q1: np.ndarray, q2: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """∂(q2 ⊖ q1)/∂x1 and ∂(q2 ⊖ q1)/∂x2 for right perturbations q ⊕ x, each (N, nv, nv) for
-    N pairs q1, q2 (N, nq).
+    """∂(q2 ⊖ q1)/∂x1 and ∂(q2 ⊖ q1)/∂x2 for right perturbations q ⊕ x, for N pairs q1, q2
+    (N, nq). Both are block-diagonal, so each is (N, nv, 3) by dof group: row d on the
+    columns of its group (a vector dof: its own at index 0; a rotation: its 3).
 
-    Identity on vector dofs; on a rotation φ = Log(R1ᵀ R2): ∂φ/∂x2 = J_r⁻¹(φ),
+    ∓1 on vector dofs; on a rotation φ = Log(R1ᵀ R2): ∂φ/∂x2 = J_r⁻¹(φ),
     ∂φ/∂x1 = −J_r⁻¹(φ) Exp(φ)ᵀ = −J_l⁻¹(φ) = −J_r⁻¹(−φ).
     """
     N, nv = len(q1), model.nv
-    d1 = np.tile(-np.eye(nv), (N, 1, 1))
-    d2 = np.tile(np.eye(nv), (N, 1, 1))
+    d1, d2 = np.zeros((N, nv, 3)), np.zeros((N, nv, 3))
+    d1[:, :, 0], d2[:, :, 0] = -1.0, 1.0
     for qadr, dadr in rotations.quat_dofs:
         phi = quat_log_between(q1[:, qadr : qadr + 4], q2[:, qadr : qadr + 4])
         rot = slice(dadr, dadr + 3)
-        d2[:, rot, rot] = _jr_inverse(phi)
-        d1[:, rot, rot] = -_jr_inverse(-phi)
+        d2[:, rot] = _jr_inverse(phi)
+        d1[:, rot] = -_jr_inverse(-phi)
     return d1, d2
 
 

@@ -39,6 +39,7 @@ from estimator.problem import (
 )
 
 THREADS = 2
+LAMBDA_REJECTED = 1e-5  # the least damping after a rejected step
 
 
 @dataclass(frozen=True)
@@ -60,7 +61,8 @@ class WindowResult:
 class Terms:
     """Inverse dynamics and sensors at the interior knots k = 1 … T−2, stacked (row i ↔ knot
     i + 1). a, u: (K, nv); s: (K, ns). With Jacobians, derivatives with respect to
-    (x_{k−1}, x_k, x_{k+1}): Ju (K, nv, 3 nv), Js (K, ns, 3 nv), da (K, nv, 3 nv)."""
+    (x_{k−1}, x_k, x_{k+1}): Ju (K, nv, 3 nv), Js (K, ns, 3 nv), and da (K, 3, nv, 3) by key
+    and dof group (`Linearizer.dense`: a_k's row d reaches only d's group)."""
 
     a: np.ndarray
     u: np.ndarray
@@ -74,10 +76,11 @@ class Terms:
 class Block:
     """One factor's whitened rows at every interior knot, robust weights applied.
 
-    r: (K, m); J: (K, m, 3 nv) over (x_{k−1}, x_k, x_{k+1}) (the jerk prior: 4 nv, to x_{k+2})
-    or None; J_bias: (K, m, nb) over b_k or None; cost: (K,) robust cost of the rows at each
-    knot; valid: (K, m) rows that carry a factor (a measurement, a known force); the others
-    are 0.
+    r: (K, m); J: (K, m, 3 nv) over (x_{k−1}, x_k, x_{k+1}) or None; dofwise (the priors, m =
+    nv): J (K, keys, nv, 3) by key and dof group instead (`Linearizer.dense`; the jerk prior
+    reaches 4 keys, to x_{k+2}); J_bias: (K, m, nb) over b_k or None; cost: (K,) robust cost of
+    the rows at each knot; valid: (K, m) rows that carry a factor (a measurement, a known
+    force); the others are 0.
     """
 
     name: str
@@ -86,6 +89,8 @@ class Block:
     cost: np.ndarray
     valid: np.ndarray
     J_bias: np.ndarray | None = None
+    dofwise: bool = False  # row d reaches dof d's group only (itself; a rotation's 3)
+    sensor: bool = False
 
 
 def huber(norm: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
@@ -115,9 +120,16 @@ class Linearizer:
         for _ in range(THREADS):
             self.idle.put(KnotModel(problem, problem.settings.path))
         self.rotations = _RotationDofs.of(problem.model)
-        rotation = {d + i for _, d in self.rotations.quat_dofs for i in range(3)}
-        # a dof where difference Jacobians are ±1 (any dof if all are rotations: overwritten)
-        self.vector_dof = min(set(range(problem.model.nv)) - rotation, default=0)
+        self.rotation_dofs = [d for _, d in self.rotations.quat_dofs]  # first of each 3
+        rotation = {d + i for d in self.rotation_dofs for i in range(3)}
+        self.vector_dofs = np.array(sorted(set(range(problem.model.nv)) - rotation), dtype=int)
+        # the columns of each dof's group: (nv, 3), where `group_mask`
+        self.group_cols = np.tile(np.arange(problem.model.nv)[:, None], (1, 3))
+        self.group_mask = np.zeros((problem.model.nv, 3), bool)
+        self.group_mask[:, 0] = True
+        for d in self.rotation_dofs:
+            self.group_cols[d : d + 3] = d + np.arange(3)
+            self.group_mask[d : d + 3] = True
         self.pool = ThreadPoolExecutor(THREADS)
         self.span = 4 if problem.settings.jerk_prior_std > 0 else 3  # keys a knot's rows reach
         self.passes = {True: 0, False: 0}  # MuJoCo passes over all knots, with/without Jacobians
@@ -144,16 +156,27 @@ class Linearizer:
             d1, d2 = difference_jacobians(p.model, self.rotations, qpos[:-1], qpos[1:])
 
         def chained(D: np.ndarray, i: slice, out: np.ndarray) -> None:
-            """out = [P d1_k,  D_q + P d2_k + Q d1_{k+1},  Q d2_{k+1}]ᵀ, P = D_v/h − D_a/h²,
-            Q = D_a/h² (over x_{k−1}, x_k, x_{k+1}), computed transposed in MuJoCo's layout
-            D (3, n, nv, m), where every product is contiguous."""
-            Qt = D[2] / h**2
-            Pt = D[1] / h - Qt
-            out[:, :nv] = self._transposed_times(d1[:-1][i], Pt)
-            out[:, nv : 2 * nv] = D[0]
-            out[:, nv : 2 * nv] += self._transposed_times(d2[:-1][i], Pt)
-            out[:, nv : 2 * nv] += self._transposed_times(d1[1:][i], Qt)
-            out[:, 2 * nv :] = self._transposed_times(d2[1:][i], Qt)
+            """out = [d1_kᵀ P,  D_q + d2_kᵀ P + d1_{k+1}ᵀ Q,  d2_{k+1}ᵀ Q] over (x_{k−1}, x_k,
+            x_{k+1}), P = D_v/h − D_a/h², Q = D_a/h², computed transposed in MuJoCo's layout
+            D (3, n, nv, m), where every product is contiguous. On vector dofs d1 = −1 and
+            d2 = 1: [−P, D_q + P − Q, Q]; the rotations' rows are redone by their blocks."""
+            Q = D[2] * h**-2
+            P = D[1] * (1.0 / h)
+            P -= Q
+            x0, x1, x2 = out[:, :nv], out[:, nv : 2 * nv], out[:, 2 * nv :]
+            np.negative(P, out=x0)
+            np.subtract(P, Q, out=x1)
+            x1 += D[0]
+            x2[...] = Q
+            for d in self.rotation_dofs:
+                rot = slice(d, d + 3)
+
+                def times(dk: np.ndarray, M: np.ndarray, rot: slice = rot) -> np.ndarray:
+                    return dk[i, rot].transpose(0, 2, 1) @ M[:, rot]  # dᵀ M on the 3 rows
+
+                x0[:, rot] = times(d1[:-1], P)
+                x1[:, rot] = D[0][:, rot] + times(d2[:-1], P) + times(d1[1:], Q)
+                x2[:, rot] = times(d2[1:], Q)
 
         def work(chunk: range) -> None:
             worker = self.idle.get()  # a KnotModel (MjData) no other thread is using
@@ -173,23 +196,24 @@ class Linearizer:
         list(self.pool.map(work, self.chunks(1, p.T - 1)))
         if not with_jacobians:
             return Terms(a[1:-1], u, s)
-        da = np.concatenate([-d1[:-1], d1[1:] - d2[:-1], d2[1:]], axis=2) / h**2
+        da = np.stack([-d1[:-1], d1[1:] - d2[:-1], d2[1:]], axis=1) / h**2
         return Terms(a[1:-1], u, s, JuT.transpose(0, 2, 1), JsT.transpose(0, 2, 1), da)
 
     @staticmethod
-    def chunks(start: int, stop: int) -> list[range]:
-        """range(start, stop) in contiguous pieces, several per thread (load balance)."""
-        n = max(1, min(4 * THREADS, stop - start))
+    def chunks(start: int, stop: int, pieces: int = 4 * THREADS) -> list[range]:
+        """range(start, stop) in contiguous pieces (default: several per thread, to balance
+        the load)."""
+        n = max(1, min(pieces, stop - start))
         edges = np.linspace(start, stop, n + 1).round().astype(int)
         return [range(edges[j], edges[j + 1]) for j in range(n) if edges[j + 1] > edges[j]]
 
-    def _transposed_times(self, d: np.ndarray, Dt: np.ndarray) -> np.ndarray:
-        """(D d)ᵀ = dᵀ Dᵀ (K, nv, m) for a difference Jacobian d (K, nv, nv) = ±I on vector
-        dofs, 3×3 blocks on rotations: ±Dᵀ with the rotation rows redone."""
-        out = Dt * d[:, self.vector_dof, self.vector_dof][:, None, None]
-        for _, dadr in self.rotations.quat_dofs:
-            rot = slice(dadr, dadr + 3)
-            out[:, rot] = d[:, rot, rot].transpose(0, 2, 1) @ Dt[:, rot]
+    def dense(self, C: np.ndarray) -> np.ndarray:
+        """A dofwise Jacobian (K, keys, nv, 3) by key and dof group as (K, nv, keys·nv)."""
+        K, keys, nv, _ = C.shape
+        d, j = np.nonzero(self.group_mask)
+        out = np.zeros((K, nv, keys * nv))
+        for a in range(keys):
+            out[:, d, a * nv + self.group_cols[d, j]] = C[:, a, d, j]
         return out
 
     # -- whitened, robustly weighted rows of every factor --------------------------------------
@@ -220,9 +244,10 @@ class Linearizer:
             if robust:
                 root = np.repeat(np.sqrt(weight), g, axis=1)
                 block.r = block.r * root
-                for J in (block.J, block.J_bias):
-                    if J is not None:
-                        J *= root[:, :, None]
+                if block.J is not None:
+                    block.J *= root[:, None, :, None] if block.dofwise else root[:, :, None]
+                if block.J_bias is not None:
+                    block.J_bias *= root[:, :, None]
             return block
 
         # physics: W (u − u_known); rows with no known force are 0. Robust too, so that impacts
@@ -247,20 +272,20 @@ class Linearizer:
         sa = p.settings.accel_prior_std
         r = t.a / sa
         J = t.da / sa if t.da is not None else None
-        out.append(Block("prior", r, J, 0.5 * np.sum(r**2, axis=1), np.ones(r.shape, bool)))
+        cost = 0.5 * np.sum(r**2, axis=1)
+        out.append(Block("prior", r, J, cost, np.ones(r.shape, bool), dofwise=True))
         if self.span == 4:  # constant-acceleration prior (a_{k+1} − a_k)/(h σ_j), k < T − 2
             sj = p.h * p.settings.jerk_prior_std
             r = np.zeros_like(t.a)
             r[:-1] = (t.a[1:] - t.a[:-1]) / sj
             J = None
-            if t.da is not None:
-                nv = p.model.nv
-                J = np.zeros((K, nv, 4 * nv))
-                J[:-1, :, : 3 * nv] -= t.da[:-1] / sj
-                J[:-1, :, nv:] += t.da[1:] / sj
+            if t.da is not None:  # by key and dof group, as da
+                J = np.zeros((K, 4, *t.da.shape[2:]))
+                J[:-1, :3] -= t.da[:-1] / sj
+                J[:-1, 1:] += t.da[1:] / sj
             valid = np.ones(r.shape, bool)
             valid[-1] = False
-            jerk = Block("jerk prior", r, J, np.zeros(K), valid)
+            jerk = Block("jerk prior", r, J, np.zeros(K), valid, dofwise=True)
             if p.settings.jerk_robust_kernel == "none":
                 jerk.cost = 0.5 * np.sum(r**2, axis=1)
                 out.append(jerk)
@@ -294,7 +319,7 @@ class Linearizer:
             for M in (J, J_bias):
                 if M is not None:
                     M[~rows_valid] = 0.0
-            block = Block(sensor.stream, r, J, np.zeros(K), rows_valid, J_bias)
+            block = Block(sensor.stream, r, J, np.zeros(K), rows_valid, J_bias, sensor=True)
             kernel = getattr(p.settings, sensor.kernel)
             out.append(weighted(block, kernel, group=sensor.group))
         return out
@@ -322,6 +347,8 @@ class Linearizer:
         row = 0
         for b in blocks:
             rows = slice(row, row + b.r.shape[1])
+            if b.dofwise and b.J is not None:
+                b = Block(b.name, b.r, self.dense(b.J), b.cost, b.valid)
             J_z, cols = self.z_columns(b)
             J[:, rows, cols] = J_z
             row = rows.stop
@@ -389,44 +416,86 @@ class BandedSystem:
         p = lin.problem
         T, nz, nv, span = p.T, p.nz, p.model.nv, lin.span
         K = T - 2
-        G = np.zeros((K, span * nz, span * nz))  # J_kᵀ J_k and J_kᵀ r_k of every knot's rows
-        gk = np.zeros((K, span * nz))
-        # each factor on the columns its rows reach (3× fewer products than the dense rows),
-        # added back by runs of consecutive columns (slices: fancy indexing is 5× slower)
-        parts = []
-        for block in blocks:
-            J, cols = lin.z_columns(block)
+        # knot row i (knot k = i + 1) reaches keys i + a, a = 0 … span − 1. Each factor's
+        # Jacobian is split by key into runs of consecutive columns (slices: fancy indexing
+        # is 5× slower): [(a, columns in J, columns in z_{i+a})]
+        # the sensors' blocks (a few rows each) are stacked into one over their columns' union
+        dofwise = [(b.r, b.J) for b in blocks if b.dofwise and b.J is not None]
+        groups = [[b] for b in blocks if not (b.dofwise or b.sensor)]
+        groups.append([b for b in blocks if b.sensor])
+        parts = []  # (r, [(J, its columns in the union)], runs)
+        for group in groups:
+            reach = [lin.z_columns(b) for b in group]
+            if len(reach) == 1:  # its own columns, in their order
+                cols = reach[0][1]
+            else:
+                cols = np.unique(np.concatenate([c for _, c in reach] or [np.zeros(0, int)]))
             if not len(cols):  # (rows with no measurement in this window)
                 continue
-            starts = np.flatnonzero(np.diff(cols, prepend=-2) != 1)
+            starts = np.flatnonzero((np.diff(cols, prepend=-2) != 1) | (cols % nz == 0))
             runs = [
-                (slice(i, j), slice(cols[i], cols[i] + j - i))
+                (cols[i] // nz, slice(i, j), slice(cols[i] % nz, cols[i] % nz + j - i))
                 for i, j in zip(starts, [*starts[1:], len(cols)], strict=True)
             ]
-            parts.append((block.r, J, runs))
+            r = np.concatenate([b.r for b in group], axis=1)
+            parts.append((r, [(J, np.searchsorted(cols, c)) for J, c in reach], len(cols), runs))
+        # the priors' rows reach one dof (or one rotation's 3) per key: JᵀJ by dof groups
+        vec = lin.vector_dofs
 
-        def products(c: range) -> None:  # (in threads: numpy releases the GIL)
-            i = slice(c.start, c.stop)
-            for r, J, runs in parts:
-                Jt = J[i].transpose(0, 2, 1)
-                JtJ, Jtr = Jt @ J[i], (Jt @ r[i, :, None])[:, :, 0]
-                for in_a, z_a in runs:
-                    gk[i, z_a] += Jtr[:, in_a]
-                    for in_b, z_b in runs:
-                        G[i, z_a, z_b] += JtJ[:, in_a, in_b]
+        def products(c: range) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+            """This chunk of knots' share of (diag, lower, g), in its own arrays (threads)."""
+            diag = np.zeros((T, nz, nz))
+            lower = [np.zeros((T - d, nz, nz)) for d in range(1, span)]
+            g = np.zeros((T, nz))
+            H = [diag, *lower]  # H[a − b][key of b]: H_{k+a−b, k}
+            i0, i1 = c.start, c.stop
+            for r, reach, n_cols, runs in parts:
+                rc = r[i0:i1]
+                if len(reach) == 1:
+                    Jc = reach[0][0][i0:i1]
+                else:
+                    Jc = np.zeros((i1 - i0, r.shape[1], n_cols))
+                    row = 0
+                    for J, at in reach:
+                        Jc[:, row : row + J.shape[1], at] = J[i0:i1]
+                        row += J.shape[1]
+                for a, in_a, z_a in runs:
+                    Ja = Jc[:, :, in_a]
+                    g[i0 + a : i1 + a, z_a] += np.einsum("kmc,km->kc", Ja, rc)
+                    for b, in_b, z_b in runs:
+                        if b <= a:
+                            H[a - b][i0 + b : i1 + b, z_a, z_b] += (
+                                Ja.transpose(0, 2, 1) @ Jc[:, :, in_b]
+                            )
+            for r, C in dofwise:
+                n = C.shape[1]  # keys reached (the prior 3, the jerk prior 4)
+                # rows reaching key i + a ≤ T − 1 (the jerk prior's last row, zero, reaches T)
+                rows = [slice(i0, min(i1, T - a)) for a in range(n)]
+                Jv = [C[rows[a], a, vec, 0] for a in range(n)]  # (knots, vector dofs)
+                for a in range(n):
+                    m = rows[a].stop - i0
+                    g[i0 + a : i0 + a + m, vec] += Jv[a] * r[rows[a], vec]
+                    for b in range(a + 1):
+                        diagonal = H[a - b].reshape(-1, nz * nz)[:, :: nz + 1]  # a view
+                        diagonal[i0 + b : i0 + b + m, vec] += Jv[a] * Jv[b][:m]
+                for d in lin.rotation_dofs:  # the 3 rows of a rotation on its 3 columns
+                    rot = slice(d, d + 3)
+                    Jr = [C[rows[a], a, rot] for a in range(n)]  # (knots, 3, 3)
+                    for a in range(n):
+                        m = rows[a].stop - i0
+                        JrT = Jr[a].transpose(0, 2, 1)
+                        g[i0 + a : i0 + a + m, rot] += (JrT @ r[rows[a], rot, None])[:, :, 0]
+                        for b in range(a + 1):
+                            H[a - b][i0 + b : i0 + b + m, rot, rot] += JrT @ Jr[b][:m]
+            return diag, lower, g
 
-        list(lin.pool.map(products, lin.chunks(0, K)))
-        G_keys = G.reshape(K, span, nz, span, nz)  # [k, a, :, b, :]: keys k − 1 + a, k − 1 + b
-        g_keys = gk.reshape(K, span, nz)
-        diag = np.zeros((T, nz, nz))
-        lower = [np.zeros((T - d, nz, nz)) for d in range(1, span)]
-        g = np.zeros((T, nz))
-        for a in range(span):  # knot k's rows add to keys k − 1 + a, k − 1 + b
-            n = min(K, T - a)  # (the jerk prior's last knot reaches no key beyond T − 1)
-            g[a : a + n] += g_keys[:n, a]
-            diag[a : a + n] += G_keys[:n, a, :, a]
-            for b in range(a):
-                lower[a - b - 1][b : b + n] += G_keys[:n, a, :, b]
+        shares = list(lin.pool.map(products, lin.chunks(0, K, THREADS)))
+        diag, lower, g = shares[0]
+        for more_diag, more_lower, more_g in shares[1:]:
+            diag += more_diag
+            g += more_g
+            for mine, more in zip(lower, more_lower, strict=True):
+                mine += more
         if p.nb:  # bias prior on b_0, random walk (b_{k+1} − b_k)/(σ_walk √h)
             b_ = slice(nv, nz)
             diag[0, b_, b_] += np.diag(p.bias_prior**-2.0)
@@ -492,6 +561,12 @@ class BandedSystem:
         ab = skewed.transpose(1, 0, 2).reshape(span * nz, T * nz)
         return s, ab
 
+    def predicted_decrease(self, s: np.ndarray, lam: float, dx: np.ndarray) -> float:
+        """The quadratic model's cost decrease −gᵀdx − ½dxᵀH dx at the damped step dx, which
+        solves (H + λD) dx = −g with D = s⁻²: ½(−gᵀdx + λ dxᵀD dx)."""
+        d = dx.reshape(-1)
+        return 0.5 * float(-self.g.reshape(-1) @ d + lam * np.sum(np.square(d / s)))
+
     def damped_step(self, s: np.ndarray, ab: np.ndarray, lam: float) -> np.ndarray:
         """argmin ‖J dx + r‖² + λ Σ diag(JᵀJ) dx² → dx (T, nz); raises LinAlgError when the
         damped system is not positive definite."""
@@ -509,7 +584,7 @@ def solve_window(
     lin = Linearizer(problem)
     try:
         p = problem
-        cost, _ = lin.cost(qpos, bias)
+        cost, by_type = lin.cost(qpos, bias)
         cost0 = cost
         lam = 1e-3
         converged = False
@@ -518,31 +593,34 @@ def solve_window(
         for it in range(1, p.settings.max_iterations + 1):  # noqa: B007
             system = BandedSystem.of(lin.linearize(qpos, bias), lin, bias)
             s, ab = system.scaled_band()
-            while True:
+            while lam <= 1e10:
                 try:
                     dx = system.damped_step(s, ab, lam)
                 except np.linalg.LinAlgError:  # too ill-conditioned at this λ: a rejected step
                     lam *= 10.0
-                    if lam > 1e10:
-                        cost_new = cost
-                        break
                     continue
+                # a step the model says cannot lower the cost by the tolerance ends the window
+                # unevaluated (more damping only shortens it)
+                if system.predicted_decrease(s, lam, dx) < p.settings.tolerance * cost:
+                    converged = True
+                    break
                 q_new = retract(p.model, qpos, dx[:, : p.model.nv])
                 b_new = bias + dx[:, p.model.nv :]
-                cost_new, _ = lin.cost(q_new, b_new)
-                if cost_new < cost or lam > 1e10:
+                cost_new, by_type_new = lin.cost(q_new, b_new)
+                if cost_new < cost:
                     break
-                lam *= 10.0
-            if cost_new >= cost:
-                converged = True  # no step lowers the cost: a (local) minimum
+                # rejected: below λ ≈ 1e-5 (on the unit diagonal) the step hardly changes
+                lam = max(10.0 * lam, LAMBDA_REJECTED)
+            else:  # no λ gives a step
+                converged = True
+            if converged:
                 break
             decrease = (cost - cost_new) / max(cost, 1e-300)
-            qpos, bias, cost = q_new, b_new, cost_new
+            qpos, bias, cost, by_type = q_new, b_new, cost_new, by_type_new
             lam = max(lam / 10.0, 1e-9)
             if decrease < p.settings.tolerance:
                 converged = True
                 break
-        _, by_type = lin.cost(qpos, bias)
         std = np.full((p.T, p.model.nv), np.nan)
         warnings: list[str] = []
         if covariance and system is not None:

@@ -153,7 +153,8 @@ def test_model_error_offset_is_on_the_unactuated_dofs_and_reported_by_name():
 
 
 def test_difference_jacobians_of_rotations():
-    """∂(q2 ⊖ q1)/∂x on a free joint's rotation, against differences of mj_differentiatePos."""
+    """∂(q2 ⊖ q1)/∂x on a free joint's rotation, against differences of mj_differentiatePos;
+    by dof group (row d on the columns of d's group; zero elsewhere)."""
     from estimator.problem import _RotationDofs, difference_jacobians
 
     model = load_config(ROOT / "configs" / "humanoid_push.toml").load_model()
@@ -162,8 +163,20 @@ def test_difference_jacobians_of_rotations():
     q2 = model.qpos0.copy()
     mujoco.mj_integratePos(model, q1, rng.normal(0, 0.5, model.nv), 1.0)
     mujoco.mj_integratePos(model, q2, rng.normal(0, 0.5, model.nv), 1.0)
-    d1, d2 = difference_jacobians(model, _RotationDofs.of(model), q1[None], q2[None])
-    d1, d2 = d1[0], d2[0]
+    rotations = _RotationDofs.of(model)
+    d1, d2 = difference_jacobians(model, rotations, q1[None], q2[None])
+    group = {d: [d] for d in range(model.nv)}  # the columns of each row's group
+    for _, r in rotations.quat_dofs:
+        group.update({r + i: [r, r + 1, r + 2] for i in range(3)})
+    assert len(rotations.quat_dofs) == 1  # the free joint: vector dofs and one rotation
+
+    def dense(by_group: np.ndarray) -> np.ndarray:
+        out = np.zeros((model.nv, model.nv))
+        for d, cols in group.items():
+            out[d, cols] = by_group[d, : len(cols)]
+        return out
+
+    d1, d2 = dense(d1[0]), dense(d2[0])
 
     def diff(a, b):
         v = np.zeros(model.nv)
