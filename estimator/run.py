@@ -122,11 +122,11 @@ def smooth(
             )
             stages.append(solve_window(first, init_q, init_b[:, : first.nb], covariance=False))
             init_q, init_b[:, : first.nb] = stages[0].qpos, stages[0].bias
-        result = solve_window(problem, init_q, init_b)
-        stages.append(result)
         last = e == T
         keep_from = s if i == 0 else s + overlap // 2
         keep_to = e if last else e - overlap // 2
+        result = solve_window(problem, init_q, init_b, range(keep_from - s, keep_to - s))
+        stages.append(result)
         qpos[keep_from:keep_to] = result.qpos[keep_from - s : keep_to - s]
         bias[keep_from:keep_to] = result.bias[keep_from - s : keep_to - s]
         std[keep_from:keep_to] = result.qpos_std[keep_from - s : keep_to - s]

@@ -34,11 +34,13 @@ from estimator.problem import (
     accelerations,
     difference_jacobians,
     quat_errors,
+    quat_log_between,
     retract,
     velocities,
 )
 
 THREADS = 2
+LAMBDA_MIN = 1e-9  # Levenberg–Marquardt's least damping, and its first
 LAMBDA_REJECTED = 1e-5  # the least damping after a rejected step
 
 
@@ -302,9 +304,12 @@ class Linearizer:
             Js = t.Js[:, sensor.rows] if t.Js is not None else None
             J_bias = None
             if sensor.kind == "quat":
-                e, de_dp = quat_errors(pred, np.where(measured, meas, pred))
-                r = e / sig
-                if Js is not None:
+                target = np.where(measured, meas, pred)
+                if Js is None:  # e = Log(meas⁻¹ ⊗ pred)
+                    r = quat_log_between(target, pred) / sig
+                else:
+                    e, de_dp = quat_errors(pred, target)
+                    r = e / sig
                     Js = np.einsum("kij,kjc->kic", de_dp, Js)
             else:
                 b = bias[1:-1, sensor.bias] if sensor.bias is not None else 0.0
@@ -388,10 +393,11 @@ class Linearizer:
 
     def bias_cost(self, bias: np.ndarray) -> dict[str, float]:
         """{"bias": cost of the bias prior and random walk} ({} without biased sensors)."""
-        rows = self.bias_rows(bias)
-        if not rows:
+        p = self.problem
+        if not p.nb:
             return {}
-        return {"bias": float(sum(0.5 * np.sum((r / s) ** 2) for _, _, r, s in rows))}
+        walk = (bias[1:] - bias[:-1]) / (p.bias_walk * np.sqrt(p.h))
+        return {"bias": 0.5 * float(np.sum((bias[0] / p.bias_prior) ** 2) + np.sum(walk**2))}
 
     def close(self) -> None:
         self.pool.shutdown()
@@ -509,8 +515,9 @@ class BandedSystem:
             g[1:, b_] += step
         return cls(diag, lower, g)
 
-    def marginal_std(self, nv: int, warnings: list[str]) -> np.ndarray:
-        """(T, nv) marginal standard deviations of x_k, by GTSAM's Marginals of this system.
+    def marginal_std(self, nv: int, warnings: list[str], keys: range | None = None) -> np.ndarray:
+        """(T, nv) marginal standard deviations of x_k at `keys` (default: all; NaN at the
+        others), by GTSAM's Marginals of this system.
 
         Contact directions make JᵀJ stiff (≈1e12) beside weakly observed ones, so the system is
         regularized by 1e-9·diag(JᵀJ), a prior far weaker than any measurement.
@@ -532,7 +539,7 @@ class BandedSystem:
             for k in range(T):
                 at.insert(k, z)
             marginals = gtsam.Marginals(graph, at)
-            for k in range(T):
+            for k in range(T) if keys is None else keys:
                 std[k] = np.sqrt(np.clip(np.diag(marginals.marginalCovariance(k))[:nv], 0, None))
         except RuntimeError as err:
             first = str(err).strip().splitlines()[0] if str(err).strip() else "ill-posed"
@@ -541,24 +548,35 @@ class BandedSystem:
 
     def scaled_band(self) -> tuple[np.ndarray, np.ndarray]:
         """Marquardt scaling s = diag(H)^−½ and the lower band of S H S in LAPACK storage
-        (ab[i − j, j] = (S H S)_ij), unit diagonal."""
+        (ab[i − j, j] = (S H S)_ij), unit diagonal.
+
+        The band is as wide as the farthest coupling: keys span − 1 apart couple only through
+        the jerk prior, dof to dof (a rotation's 3 to its 3), so its rows end there: 3 nz + 3
+        rows instead of 4 nz (the banded Cholesky's cost goes with the band's square)."""
         T, nz, _ = self.diag.shape
         d = np.einsum("kii->ki", self.diag).reshape(-1)
         s = 1.0 / np.sqrt(d + 1e-12 * max(float(d.max()), 1.0))
         S = s.reshape(T, nz)
-        # column strip of key k: C_k = [H_kk; H_{k+1,k}; …] (span·nz × nz), zero-padded below;
-        # LAPACK's ab[d, k nz + c] = H[k nz + c + d, k nz + c] = C_k[c + d, c]
         span = len(self.lower) + 1
-        C = np.zeros((T, (span + 1) * nz, nz))
+        rows, cols = np.nonzero(np.any(self.lower[-1] != 0, axis=0))
+        kd = (span - 1) * nz + int(np.max(rows - cols, initial=-1))  # the farthest nonzero
+        # LAPACK's ab[i − j, j] = H_ij: key k's column c holds H_{k+o, k}[r, c] at
+        # i − j = o nz + r − c, written through a skewed view of M[k, c, nz + (i − j)] (the
+        # padding nz on each side takes the diagonal block's upper half and the zeros past kd)
+        M = np.zeros((T, nz, nz + kd + 1 + nz))
+        st = M.strides
         for offset, blocks in enumerate([self.diag, *self.lower]):
             n = len(blocks)
-            C[:n, offset * nz : (offset + 1) * nz] = S[offset : offset + n, :, None] * blocks
-        C *= S[:, None, :]
-        st = C.strides
-        skewed = np.lib.stride_tricks.as_strided(
-            C, shape=(T, span * nz, nz), strides=(st[0], st[1], st[1] + st[2]), writeable=False
-        )
-        ab = skewed.transpose(1, 0, 2).reshape(span * nz, T * nz)
+            skewed = np.lib.stride_tricks.as_strided(
+                M[:n, :, (offset + 1) * nz :],
+                shape=(n, nz, nz),
+                strides=(st[0], st[1] - st[2], st[2]),
+            )  # skewed[k, c, r] = M[k, c, nz + offset·nz + r − c]
+            skewed[...] = (S[offset : offset + n, :, None] * blocks * S[:n, None, :]).transpose(
+                0, 2, 1
+            )
+        # in Fortran order, as LAPACK reads it (scipy would copy it otherwise)
+        ab = M[:, :, nz : nz + kd + 1].reshape(T * nz, kd + 1).T
         return s, ab
 
     def predicted_decrease(self, s: np.ndarray, lam: float, dx: np.ndarray) -> float:
@@ -570,23 +588,29 @@ class BandedSystem:
     def damped_step(self, s: np.ndarray, ab: np.ndarray, lam: float) -> np.ndarray:
         """argmin ‖J dx + r‖² + λ Σ diag(JᵀJ) dx² → dx (T, nz); raises LinAlgError when the
         damped system is not positive definite."""
-        damped = ab.copy()
+        damped = ab.copy(order="F")
         damped[0] += lam
-        factor = scipy.linalg.cholesky_banded(damped, lower=True, check_finite=False)
+        factor = scipy.linalg.cholesky_banded(
+            damped, overwrite_ab=True, lower=True, check_finite=False
+        )
         y = scipy.linalg.cho_solve_banded((factor, True), -s * self.g.reshape(-1))
         return (s * y).reshape(self.g.shape)
 
 
 def solve_window(
-    problem: Problem, qpos: np.ndarray, bias: np.ndarray, covariance: bool = True
+    problem: Problem, qpos: np.ndarray, bias: np.ndarray, covariance: bool | range = True
 ) -> WindowResult:
-    """Levenberg–Marquardt on one window from (qpos (T, nq), bias (T, nb))."""
+    """Levenberg–Marquardt on one window from (qpos (T, nq), bias (T, nb)); the marginal
+    covariances at the knots `covariance` (True: all; False: none)."""
     lin = Linearizer(problem)
     try:
         p = problem
         cost, by_type = lin.cost(qpos, bias)
         cost0 = cost
-        lam = 1e-3
+        # damping λ on the unit diagonal: from LAMBDA_MIN (Gauss–Newton steps), raised only by
+        # rejected steps (on the 1-minute humanoid_push log 120 linearizations against 157
+        # from λ = 1e-3, and the lower cost)
+        lam = LAMBDA_MIN
         converged = False
         it = 0
         system = None
@@ -617,7 +641,7 @@ def solve_window(
                 break
             decrease = (cost - cost_new) / max(cost, 1e-300)
             qpos, bias, cost, by_type = q_new, b_new, cost_new, by_type_new
-            lam = max(lam / 10.0, 1e-9)
+            lam = max(lam / 10.0, LAMBDA_MIN)
             if decrease < p.settings.tolerance:
                 converged = True
                 break
@@ -625,7 +649,8 @@ def solve_window(
         warnings: list[str] = []
         if covariance and system is not None:
             # the last linearization: at the solution, or one step (< tolerance) before it
-            std = system.marginal_std(p.model.nv, warnings)
+            keys = covariance if isinstance(covariance, range) else None
+            std = system.marginal_std(p.model.nv, warnings, keys)
         return WindowResult(
             qpos,
             bias,
