@@ -3,11 +3,11 @@
 Each iteration linearizes every interior knot (MuJoCo's mjd_inverseFD, threaded, the GIL
 released), then whitens, robustly weights and chains the rows through the finite differences
 for all knots at once (numpy, batched). Every factor sits on three consecutive keys
-(z_{k−1}, z_k, z_{k+1}), the constant-acceleration prior on four, so the normal equations JᵀJ
-are block-banded (bandwidth 2 or 3 keys), summed factor by factor over the columns each
-reaches: each Levenberg–Marquardt trial is one banded Cholesky (LAPACK pbtrf through scipy),
-O(T). GTSAM eliminates the same system once per window, as HessianFactors, for the marginal
-covariances.
+(z_{k−1}, z_k, z_{k+1}), the constant-acceleration prior on four (dof to dof), so the normal
+equations JᵀJ are block-banded (bandwidth 2 or 3 keys), summed straight into key blocks over
+the columns each factor reaches: each Levenberg–Marquardt trial is one banded Cholesky
+(LAPACK pbtrf through scipy), O(T). GTSAM eliminates the same system once per window, as
+HessianFactors, for the marginal covariances.
 
 Measured on the humanoid (27 dofs, 400 knots a window): GTSAM's elimination per trial cost
 as much as the MuJoCo linearization itself (one JacobianFactor per knot built in Python, the
