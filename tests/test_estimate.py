@@ -92,8 +92,9 @@ def test_factor_jacobians_match_numerical_differentiation_on_the_manifold(name, 
 
 
 def test_banded_normal_equations_and_marginals_match_the_dense_system():
-    """BandedSystem (JᵀJ by key blocks, bias prior and walk, LAPACK band storage, damped step,
-    GTSAM marginals) against the dense normal equations of the same rows."""
+    """BandedSystem (JᵀJ by key blocks, bias prior and walk, LAPACK band storage, damped step
+    and its predicted decrease, GTSAM marginals) against the dense normal equations of the
+    same rows."""
     for method, error in (("physics", 0.0), ("kinematic", 0.0), ("physics", 50.0)):
         # bandwidth 2 and 3 keys; with the model-error offset
         problem, qpos, bias = _window("humanoid_push", 100, 10, method, error)
@@ -128,6 +129,10 @@ def test_banded_normal_equations_and_marginals_match_the_dense_system():
             expected = c * np.linalg.solve(c[:, None] * H * c + lam * np.eye(len(c)), -c * g)
             scale = np.abs(expected).max()  # contacts make H stiff (≈1e12): compare to scale
             np.testing.assert_allclose(dx.reshape(-1), expected, rtol=0, atol=1e-5 * scale)
+            # the quadratic model's decrease at that step, −gᵀdx − ½dxᵀH dx
+            step = dx.reshape(-1)
+            model = -g @ step - 0.5 * step @ H @ step
+            assert system.predicted_decrease(s, lam, dx) == pytest.approx(model, rel=1e-6)
             std = system.marginal_std(nv, [])
             d = np.diag(H)
             cov = np.linalg.inv(H + 1e-9 * np.diag(d + 1e-12 * max(d.max(), 1.0)))
@@ -225,6 +230,18 @@ def estimated(tmp_path_factory):
     return out, log, config
 
 
+def _estimate_with(estimated, folder: Path, settings: str) -> tuple[Path, dict]:
+    """`physfuse estimate` on the fixture's log with `settings` (TOML lines) added to its
+    config's [estimator]: (out dir, summary.json)."""
+    _, log, config = estimated
+    changed = folder / "changed.toml"
+    changed.write_text(f"{config.read_text()}\n[estimator]\n{settings}\n")
+    out = folder / "out"
+    argv = ["estimate", str(log), "--config", str(changed), "--out", str(out), "--quiet"]
+    assert main(argv) == 0
+    return out, json.loads((out / "summary.json").read_text())
+
+
 def test_estimate_writes_the_shared_topic_layout_and_beats_the_measurements(estimated, capsys):
     out, log, config = estimated
     model = load_config(config).load_model()
@@ -289,12 +306,7 @@ def test_init_kinematic_starts_the_physics_from_the_kinematic_smoother(estimated
     """init = "kinematic": each window is first solved without physics; the physics solve that
     follows still converges and beats the measurements. A misspelt choice is a one-line error."""
     _, log, config = estimated
-    kinematic = tmp_path / "kinematic.toml"
-    kinematic.write_text(config.read_text() + '\n[estimator]\ninit = "kinematic"\n')
-    out = tmp_path / "out"
-    argv = ["estimate", str(log), "--config", str(kinematic), "--out", str(out), "--quiet"]
-    assert main(argv) == 0
-    summary = json.loads((out / "summary.json").read_text())
+    _, summary = _estimate_with(estimated, tmp_path, 'init = "kinematic"')
     assert summary["settings"]["init"] == "kinematic" and all(summary["converged"])
     accuracy = summary["accuracy_vs_ground_truth"]
     for metric in ("joint_deg", "torso_pos_mm", "torso_rot_deg"):
@@ -306,6 +318,24 @@ def test_init_kinematic_starts_the_physics_from_the_kinematic_smoother(estimated
     assert main(["estimate", str(log), "--config", str(typo), "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "estimator.init = 'kinematc'" in err
+
+
+def test_short_windows_stitch_the_motion_and_its_covariance(estimated, tmp_path):
+    """Windows of 0.6 s overlapping by 0.2 s: the stitched estimate still beats the
+    measurements, and every knot has its covariance (each window computes the marginals only
+    at the knots it keeps)."""
+    out, summary = _estimate_with(estimated, tmp_path, "window_s = 0.6\noverlap_s = 0.2")
+    assert len(summary["converged"]) >= 3 and all(summary["converged"])
+    accuracy = summary["accuracy_vs_ground_truth"]
+    for metric in ("joint_deg", "torso_pos_mm", "torso_rot_deg"):
+        assert accuracy["estimate"][metric] < accuracy["raw"][metric], metric
+    variances = [
+        msg.ros_msg.pose.covariance[0]
+        for msg in read_ros2_messages(str(out / "estimate.mcap"))
+        if msg.channel.topic == "/estimate/odometry/torso"
+    ]
+    assert len(variances) == summary["knots"]
+    assert all(np.isfinite(v) and v > 0 for v in variances[1:-1])
 
 
 def test_bad_settings_and_missing_logs_are_one_line_errors(estimated, tmp_path, capsys):
