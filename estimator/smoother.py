@@ -422,14 +422,14 @@ class BandedSystem:
         p = lin.problem
         T, nz, nv, span = p.T, p.nz, p.model.nv, lin.span
         K = T - 2
-        # knot row i (knot k = i + 1) reaches keys i + a, a = 0 … span − 1. Each factor's
-        # Jacobian is split by key into runs of consecutive columns (slices: fancy indexing
-        # is 5× slower): [(a, columns in J, columns in z_{i+a})]
-        # the sensors' blocks (a few rows each) are stacked into one over their columns' union
+        # Knot row i (knot k = i + 1) reaches keys i + a, a = 0 … span − 1. Each factor's
+        # Jacobian is split by key into runs of consecutive columns, (a, columns in J,
+        # columns in z_{i+a}) (slices: fancy indexing is 5× slower). The sensors' blocks, a
+        # few rows each, are stacked into one over the union of their columns.
         dofwise = [(b.r, b.J) for b in blocks if b.dofwise and b.J is not None]
         groups = [[b] for b in blocks if not (b.dofwise or b.sensor)]
         groups.append([b for b in blocks if b.sensor])
-        parts = []  # (r, [(J, its columns in the union)], runs)
+        parts = []  # (r, [(J, its columns in the union)], number of columns, runs)
         for group in groups:
             reach = [lin.z_columns(b) for b in group]
             if len(reach) == 1:  # its own columns, in their order
