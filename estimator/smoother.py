@@ -92,7 +92,7 @@ class Block:
     valid: np.ndarray
     J_bias: np.ndarray | None = None
     dofwise: bool = False  # row d reaches dof d's group only (itself; a rotation's 3)
-    sensor: bool = False
+    sensor: bool = False  # a sensor's rows (`BandedSystem.of` stacks them with the others')
 
 
 def huber(norm: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
@@ -125,7 +125,7 @@ class Linearizer:
         self.rotation_dofs = [d for _, d in self.rotations.quat_dofs]  # first of each 3
         rotation = {d + i for d in self.rotation_dofs for i in range(3)}
         self.vector_dofs = np.array(sorted(set(range(problem.model.nv)) - rotation), dtype=int)
-        # the columns of each dof's group: (nv, 3), where `group_mask`
+        # the columns of each dof's group (nv, 3), where group_mask (a vector dof: its own)
         self.group_cols = np.tile(np.arange(problem.model.nv)[:, None], (1, 3))
         self.group_mask = np.zeros((problem.model.nv, 3), bool)
         self.group_mask[:, 0] = True
