@@ -379,7 +379,8 @@ class Linearizer:
     # -- sensor biases (IMU, force/torque): prior on b_0 and random walk ---------------------
 
     def bias_rows(self, bias: np.ndarray) -> list[tuple[int, int | None, np.ndarray, np.ndarray]]:
-        """(key_a, key_b, residual, σ) for the bias prior (key_b None) and each walk step."""
+        """(key_a, key_b, residual, σ) for the bias prior (key_b None) and each walk step, as
+        rows (for the dense checks; `bias_cost` and `BandedSystem.of` use them vectorized)."""
         p = self.problem
         if not p.nb:
             return []
