@@ -20,10 +20,11 @@ and, optionally (the kinematic method), on (z_{k−1} … z_{k+2}):
 
     jerk      (a_{k+1} − a_k) / (h σ_j)                   constant-acceleration prior
 
-Sensor samples are brought to the knot times: positions by linear interpolation; rates and
-accelerations averaged over the Euler step they belong to (gyro over (t_k − h, t_k], the step
-v_k moves through; accelerometer and force/torque over [t_k, t_k + h), where a_k acts), σ/√n;
-saturated IMU samples (at the configured range) left out. Rows are whitened here;
+Position-stage samples (poses, markers, encoders) are predicted at their own times: a
+sample at t_{k−1} + α h as (1 − α) s(q_{k−1}) + α s(q_k), a factor of knot k; rates and
+accelerations are averaged over the Euler step they belong to (gyro over (t_k − h, t_k], the
+step v_k moves through; accelerometer and force/torque over [t_k, t_k + h), where a_k acts),
+σ/√n; saturated IMU samples (at the configured range) left out. Rows are whitened here;
 `estimator.smoother` weights them robustly (Huber) and solves.
 """
 
@@ -78,9 +79,10 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
     "overlap_s": (0.5, "overlap of consecutive windows, s"),
     "max_iterations": (30, "Levenberg–Marquardt iterations per window"),
     "init": (
-        "measurements",
-        "where each window's iterations start: measurements (interpolated to the knots) | "
-        "kinematic (the kinematic smoother's solution of the window)",
+        "best",
+        "where each window's physics solve starts: measurements (interpolated to the knots) | "
+        "kinematic (the kinematic smoother's solution of the window) | best (from both; the "
+        "solution of lower cost)",
     ),
     "tolerance": (1e-3, "stop when an iteration lowers the cost by less than this fraction"),
     "model_error_std": (
@@ -112,7 +114,7 @@ CHOICES: Mapping[str, tuple[str, ...]] = {
     "sensor_kernel": ("huber", "cauchy"),
     "force_sensor_kernel": ("huber", "cauchy"),
     "jerk_kernel": ("auto", "none", "huber", "cauchy"),
-    "init": ("measurements", "kinematic"),
+    "init": ("measurements", "kinematic", "best"),
     "contact_forces": ("balanced", "model"),
 }
 MODEL_ERROR = "model error"  # Problem.bias_of key of the generalized force offset
@@ -137,7 +139,7 @@ class Settings:
     window_s: float = 4.0
     overlap_s: float = 0.5
     max_iterations: int = 30
-    init: str = "measurements"
+    init: str = "best"
     tolerance: float = 1e-3
     model_error_std: float = 0.0
     model_error_walk: float = 1.0
@@ -196,6 +198,12 @@ class SensorBlock:
     group:   rows per element (a marker's 3, a joint's 1): missing samples and the robust
              kernel go by element; 0: the block is one element
     kernel:  the Settings field that names its robust kernel
+    alpha:   (T,) or None. A position-stage stream's samples, one per knot and slot: the
+             sample of knot k was taken at t_{k−1} + α_k h and is predicted between the two
+             knots, (1 − α_k) s(q_{k−1}) + α_k s(q_k) (quaternions normalized). None: the
+             measurement is at the knot's time (interpolated to it, or averaged)
+    slot:    which of a knot's samples (0: its first; a stream faster than the knots has
+             several blocks)
     """
 
     stream: str
@@ -207,6 +215,8 @@ class SensorBlock:
     stage: str = "pos"
     group: int = 0
     kernel: str = "sensor_kernel"
+    alpha: np.ndarray | None = None
+    slot: int = 0
 
     def elements(self) -> list[SensorBlock]:
         """One block per element (per `group` rows); [self] for a one-element block."""
@@ -326,10 +336,14 @@ def build_problem(
     settings: Settings,
     t_ns: np.ndarray | None = None,
     compiled: tuple[mujoco.MjModel, dict[str, list[str]]] | None = None,
+    at_sample_times: bool = True,
 ) -> Problem:
     """Map the measurements onto the knots of `t_ns` (default: the whole log).
 
     compiled: the result of `model_with_sensors(config)`, to reuse across windows.
+    at_sample_times: position-stage streams (poses, markers, encoders) as their samples, each
+    predicted between its two knots (`SensorBlock.alpha`); False: interpolated to the knots
+    (the filters, which step from knot to knot).
     """
     model, sensor_names = compiled or model_with_sensors(config)
     Softness().apply(model)
@@ -350,40 +364,44 @@ def build_problem(
             continue
         adr = [_sensor_rows(model, s) for s in sensor_names[name]]
         noise = stream.noise
+        slots = (
+            samples_between_knots(m, t_ns)
+            if at_sample_times
+            else [(interpolated_at_knots(m, t_ns), None)]
+        )
         if stream.kind in ("pose", "tf", "rigid_bodies"):
-            values = interpolated_at_knots(m, t_ns)  # (T, E, 7)
-            for e in range(len(stream.elements)):
-                pos_rows, quat_rows = adr[2 * e], adr[2 * e + 1]
+            for slot, (values, alpha) in enumerate(slots):  # values (T, E, 7)
+                for e in range(len(stream.elements)):
+                    pos_rows, quat_rows = adr[2 * e], adr[2 * e + 1]
+                    for kind, rows, part, std in (
+                        ("vector", pos_rows, slice(0, 3), noise["position_std_m"]),
+                        ("quat", quat_rows, slice(3, 7), noise["orientation_std_rad"]),
+                    ):
+                        blocks.append(
+                            SensorBlock(
+                                name,
+                                kind,
+                                rows,
+                                values[:, e, part],
+                                np.full(3, std),
+                                alpha=alpha,
+                                slot=slot,
+                            )
+                        )
+        elif stream.kind == "markers":  # one group of 3 rows per marker
+            for slot, (values, alpha) in enumerate(slots):
                 blocks.append(
                     SensorBlock(
                         name,
                         "vector",
-                        pos_rows,
-                        values[:, e, :3],
-                        np.full(3, noise["position_std_m"]),
+                        np.concatenate(adr),
+                        values[:, :, :3].reshape(len(t_ns), -1),
+                        np.full(values.shape[1] * 3, noise["position_std_m"]),
+                        group=3,
+                        alpha=alpha,
+                        slot=slot,
                     )
                 )
-                blocks.append(
-                    SensorBlock(
-                        name,
-                        "quat",
-                        quat_rows,
-                        values[:, e, 3:7],
-                        np.full(3, noise["orientation_std_rad"]),
-                    )
-                )
-        elif stream.kind == "markers":  # one group of 3 rows per marker
-            values = interpolated_at_knots(m, t_ns)[:, :, :3]
-            blocks.append(
-                SensorBlock(
-                    name,
-                    "vector",
-                    np.concatenate(adr),
-                    values.reshape(len(t_ns), -1),
-                    np.full(values.shape[1] * 3, noise["position_std_m"]),
-                    group=3,
-                )
-            )
         elif stream.kind == "imu":
             m = without_saturated(m, stream)
             accel, accel_counts = averaged_at_knots(m, t_ns, "acc")
@@ -407,17 +425,19 @@ def build_problem(
             bias_of[name] = slice(nb, nb + 6)
             nb += 6
         elif stream.kind == "joint_state":  # one group (row) per joint
-            position = interpolated_at_knots(m, t_ns)[:, :, 0]
-            blocks.append(
-                SensorBlock(
-                    name,
-                    "vector",
-                    np.concatenate(adr),
-                    position,
-                    np.full(position.shape[1], noise["position_std"]),
-                    group=1,
+            for slot, (values, alpha) in enumerate(slots):
+                blocks.append(
+                    SensorBlock(
+                        name,
+                        "vector",
+                        np.concatenate(adr),
+                        values[:, :, 0],
+                        np.full(values.shape[1], noise["position_std"]),
+                        group=1,
+                        alpha=alpha,
+                        slot=slot,
+                    )
                 )
-            )
         elif stream.kind == "wrench":
             wrench, counts = averaged_at_knots(m, t_ns, "acc")
             blocks += _biased_pair(
@@ -526,6 +546,29 @@ def interpolated_at_knots(m: Measurement, t_ns: np.ndarray) -> np.ndarray:
     bracket each knot; NaN across gaps longer than 2.5 sample periods."""
     period = int(np.median(np.diff(m.t_ns))) if len(m) > 1 else 0
     return resample(m, t_ns, max_gap_ns=int(2.5 * period))
+
+
+def samples_between_knots(m: Measurement, t_ns: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The samples of `m` on the knots, by slot: per slot, values (T, E, K) (NaN where a knot
+    has no sample in that slot) and α (T,). The sample at t ∈ (t_{k−1}, t_k] belongs to knot k,
+    α_k = (t − t_{k−1})/h, its first such sample to slot 0, a second to slot 1, …. Only knots
+    whose prediction is on interior knots (k − 1 ≥ 1 and k ≤ T − 2; k = 1 for a sample at t_1)
+    carry samples."""
+    T = len(t_ns)
+    h_ns = int(t_ns[1] - t_ns[0]) if T > 1 else 1
+    k = np.searchsorted(t_ns, m.t_ns, side="left")
+    inside = ((k >= 2) & (k <= T - 2)) | ((k == 1) & (m.t_ns == t_ns[min(1, T - 1)]))
+    k, t, values = k[inside], m.t_ns[inside], m.values[inside]
+    slot = np.arange(len(k)) - np.searchsorted(k, k, side="left")  # samples sorted by time
+    out = []
+    for s in range(int(slot.max()) + 1 if len(k) else 1):
+        mine = slot == s
+        slot_values = np.full((T, *m.values.shape[1:]), np.nan)
+        slot_values[k[mine]] = values[mine]
+        alpha = np.ones(T)
+        alpha[k[mine]] = (t[mine] - t_ns[k[mine] - 1]) / h_ns
+        out.append((slot_values, alpha))
+    return out
 
 
 def averaged_at_knots(

@@ -28,7 +28,7 @@ from estimator.problem import (
     model_with_sensors,
     velocities,
 )
-from estimator.smoother import Linearizer, solve_window
+from estimator.smoother import Linearizer, solve_window, with_covariance
 from physics.dynamics import make_dynamics
 from physics.model import weight as model_weight
 
@@ -115,18 +115,28 @@ def smooth(
         init_q[: max(0, kept_until - s)] = qpos[s:kept_until]
         init_b = bias[s:e].copy()
         stages = []
-        if settings.init == "kinematic" and settings.method == "physics":
+        last = e == T
+        keep_from = s if i == 0 else s + overlap // 2
+        keep_to = e if last else e - overlap // 2
+        starts_at = [(init_q, init_b)]  # where the physics solve starts
+        if settings.init in ("kinematic", "best") and settings.method == "physics":
             # (its bias dims are the physics problem's first: no model-error offset)
             first = build_problem(
                 config, window, replace(settings, method="kinematic"), t_ns[s:e], compiled
             )
             stages.append(solve_window(first, init_q, init_b[:, : first.nb], covariance=False))
-            init_q, init_b[:, : first.nb] = stages[0].qpos, stages[0].bias
-        last = e == T
-        keep_from = s if i == 0 else s + overlap // 2
-        keep_to = e if last else e - overlap // 2
-        result = solve_window(problem, init_q, init_b, range(keep_from - s, keep_to - s))
-        stages.append(result)
+            kinematic_b = init_b.copy()
+            kinematic_b[:, : first.nb] = stages[0].bias
+            kinematic = (stages[0].qpos, kinematic_b)
+            starts_at = (
+                [kinematic] if settings.init == "kinematic" else [kinematic, (init_q, init_b)]
+            )
+        solved = [solve_window(problem, q0, b0, covariance=False) for q0, b0 in starts_at]
+        stages += solved
+        # "best": the solution of lower cost; its covariance alone
+        result = with_covariance(
+            min(solved, key=lambda r: r.cost_final), range(keep_from - s, keep_to - s)
+        )
         qpos[keep_from:keep_to] = result.qpos[keep_from - s : keep_to - s]
         bias[keep_from:keep_to] = result.bias[keep_from - s : keep_to - s]
         std[keep_from:keep_to] = result.qpos_std[keep_from - s : keep_to - s]
@@ -410,22 +420,26 @@ def residuals_by_type(
 ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """Whitened residuals per knot, unweighted: "physics" (T, nv), "prior" (T, nv) and one
     (T, rows) array per stream, NaN where a knot has no such factor (and at both end knots);
-    and the robust cost per factor type."""
+    and the robust cost per factor type. A knot with several samples of a stream (slots)
+    shows its first sample's residual on a row, the next one's where the first has none."""
     lin = Linearizer(problem)
     try:
         blocks = lin.blocks(lin.terms(qpos, False), bias, robust=False)
         cost = lin.bias_cost(bias)
     finally:
         lin.close()
-    parts: dict[str, list[np.ndarray]] = {}
+    parts: dict[str, dict[int, list[np.ndarray]]] = {}
     for block in blocks:  # a pose stream's position and rotation rows together
-        parts.setdefault(block.name, []).append(np.where(block.valid, block.r, np.nan))
+        rows = parts.setdefault(block.name, {}).setdefault(block.slot, [])
+        rows.append(np.where(block.valid, block.r, np.nan))
         cost[block.name] = cost.get(block.name, 0.0) + float(block.cost.sum())
     out = {}
-    for name, rows in parts.items():
-        r = np.full((problem.T, sum(p.shape[1] for p in rows)), np.nan)
-        r[1:-1] = np.concatenate(rows, axis=1)
-        out[name] = r
+    for name, slots in parts.items():
+        first, *more = (np.concatenate(rows, axis=1) for _, rows in sorted(slots.items()))
+        for r in more:
+            first = np.where(np.isnan(first), r, first)
+        out[name] = np.full((problem.T, first.shape[1]), np.nan)
+        out[name][1:-1] = first
     return out, cost
 
 

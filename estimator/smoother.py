@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import queue
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import gtsam
 import numpy as np
@@ -30,6 +30,7 @@ from estimator.problem import (
     MODEL_ERROR,
     KnotModel,
     Problem,
+    SensorBlock,
     _RotationDofs,
     accelerations,
     difference_jacobians,
@@ -57,6 +58,8 @@ class WindowResult:
     warnings: list[str]
     linearizations: int = 0  # MuJoCo passes with Jacobians (mjd_inverseFD at every knot)
     evaluations: int = 0  # passes without (mj_inverse at every knot)
+    # the last linearization (at the solution, or one step below the tolerance before it)
+    system: BandedSystem | None = None
 
 
 @dataclass
@@ -93,6 +96,7 @@ class Block:
     J_bias: np.ndarray | None = None
     dofwise: bool = False  # row d reaches dof d's group only (itself; a rotation's 3)
     sensor: bool = False  # a sensor's rows (`BandedSystem.of` stacks them with the others')
+    slot: int = 0  # a sensor's: which of a knot's samples (`SensorBlock.slot`)
 
 
 def huber(norm: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
@@ -302,6 +306,8 @@ class Linearizer:
             sig = sensor.sigma[1:-1] if sensor.sigma.ndim == 2 else np.tile(sensor.sigma, (K, 1))
             pred = t.s[:, sensor.rows]
             Js = t.Js[:, sensor.rows] if t.Js is not None else None
+            if sensor.alpha is not None:
+                pred, Js = self.between_knots(sensor, pred, Js)
             J_bias = None
             if sensor.kind == "quat":
                 target = np.where(measured, meas, pred)
@@ -324,10 +330,40 @@ class Linearizer:
             for M in (J, J_bias):
                 if M is not None:
                     M[~rows_valid] = 0.0
-            block = Block(sensor.stream, r, J, np.zeros(K), rows_valid, J_bias, sensor=True)
+            block = Block(
+                sensor.stream, r, J, np.zeros(K), rows_valid, J_bias, sensor=True, slot=sensor.slot
+            )
             kernel = getattr(p.settings, sensor.kernel)
             out.append(weighted(block, kernel, group=sensor.group))
         return out
+
+    def between_knots(
+        self, sensor: SensorBlock, s: np.ndarray, Js: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """A sample between knots k − 1 and k (`SensorBlock.alpha`): the prediction
+        (1 − α) s_{k−1} + α s_k (K, n) and its Jacobian (K, n, 3 nv) over (x_{k−1}, x_k,
+        x_{k+1}) from the knots' own s and Js (position stage: on x_k alone). A quaternion
+        q_{k−1} is first put on q_k's side and the blend m normalized: ∂(m/‖m‖)/∂m =
+        (I − p̂p̂ᵀ)/‖m‖, whose projection the quaternion error's Jacobian makes anyway."""
+        assert sensor.alpha is not None and sensor.stage == "pos"
+        alpha = sensor.alpha[1:-1, None]  # (K, 1); knot 1's α is 1: s_0 is not needed
+        prev = np.concatenate([s[:1], s[:-1]])  # s_{k−1}
+        w_prev = 1.0 - alpha
+        if sensor.kind == "quat":
+            w_prev = w_prev * np.where(np.sum(prev * s, axis=1, keepdims=True) < 0, -1.0, 1.0)
+        blend = w_prev * prev + alpha * s
+        scale = np.ones_like(alpha)
+        if sensor.kind == "quat":
+            scale = 1.0 / np.linalg.norm(blend, axis=1, keepdims=True)
+            blend *= scale
+        if Js is None:
+            return blend, None
+        nv = self.problem.model.nv
+        at_k = Js[:, :, nv : 2 * nv]
+        J = np.zeros_like(Js)
+        J[1:, :, :nv] = (w_prev * scale)[1:, :, None] * at_k[:-1]
+        J[:, :, nv : 2 * nv] = (alpha * scale)[:, :, None] * at_k
+        return blend, J
 
     def cost(self, qpos: np.ndarray, bias: np.ndarray) -> tuple[float, dict[str, float]]:
         """Total robust cost and its split by factor type."""
@@ -646,24 +682,32 @@ def solve_window(
             if decrease < p.settings.tolerance:
                 converged = True
                 break
-        std = np.full((p.T, p.model.nv), np.nan)
-        warnings: list[str] = []
-        if covariance and system is not None:
-            # the last linearization: at the solution, or one step (< tolerance) before it
-            keys = covariance if isinstance(covariance, range) else None
-            std = system.marginal_std(p.model.nv, warnings, keys)
-        return WindowResult(
+        result = WindowResult(
             qpos,
             bias,
-            std,
+            np.full((p.T, p.model.nv), np.nan),
             it,
             converged,
             cost0,
             cost,
             by_type,
-            warnings,
+            [],
             lin.passes[True],
             lin.passes[False],
+            system,
         )
     finally:
         lin.close()
+    if not covariance:
+        return result
+    return with_covariance(result, covariance if isinstance(covariance, range) else None)
+
+
+def with_covariance(result: WindowResult, keys: range | None = None) -> WindowResult:
+    """`result` with the marginal standard deviations of x_k at `keys` (None: every knot) from
+    its last linearization (GTSAM), and their warnings."""
+    if result.system is None:
+        return result
+    warnings = list(result.warnings)
+    std = result.system.marginal_std(result.qpos_std.shape[1], warnings, keys)
+    return replace(result, qpos_std=std, warnings=warnings)

@@ -320,6 +320,25 @@ def test_init_kinematic_starts_the_physics_from_the_kinematic_smoother(estimated
     assert len(err.splitlines()) == 1 and "estimator.init = 'kinematc'" in err
 
 
+def test_init_best_keeps_the_lower_cost_of_both_starts(estimated, tmp_path):
+    """The default, init = "best": the window (the whole 1.5 s log) solved from the
+    measurements and from the kinematic smoother's solution; the estimate is the solution of
+    lower cost."""
+    out, _, _ = estimated
+    best = json.loads((out / "summary.json").read_text())
+    assert best["settings"]["init"] == "best"
+    costs = {}
+    for init in ("measurements", "kinematic"):
+        (tmp_path / init).mkdir()
+        _, summary = _estimate_with(estimated, tmp_path / init, f'init = "{init}"')
+        costs[init] = sum(summary["cost_by_type"].values())
+    assert sum(best["cost_by_type"].values()) == pytest.approx(min(costs.values()), rel=1e-12)
+    assert best["iterations"][0] > max(  # every stage counted: kinematic + both physics solves
+        json.loads((tmp_path / init / "out" / "summary.json").read_text())["iterations"][0]
+        for init in costs
+    )
+
+
 def test_short_windows_stitch_the_motion_and_its_covariance(estimated, tmp_path):
     """Windows of 0.6 s overlapping by 0.2 s: the stitched estimate still beats the
     measurements, and every knot has its covariance (each window computes the marginals only

@@ -5,12 +5,14 @@ the estimator adds per stream (`model_with_sensors`), evaluated at the knot stat
 (q_k, v_k = (q_k ⊖ q_{k−1})/h, a_k = (v_{k+1} − v_k)/h, through mj_inverse), reproduce the
 noiseless values the simulator's sensors sample: framepos, framequat, accelerometer, gyro,
 jointpos, force and torque. And the samples each knot stands for are taken from the step its
-quantity belongs to, with saturated IMU samples left out.
+quantity belongs to, with saturated IMU samples left out, and position-stage samples are
+predicted at their own times, between their two knots.
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -25,6 +27,7 @@ from estimator.problem import (
     accelerations,
     averaged_at_knots,
     build_problem,
+    samples_between_knots,
     velocities,
     without_saturated,
 )
@@ -162,3 +165,51 @@ def test_saturated_imu_samples_are_left_out_per_sensor_axis(tmp_path):
     # without a range nothing is left out
     unlimited = replace(stream, accel_range=np.inf, gyro_range=np.inf)
     assert without_saturated(m, unlimited) is m
+
+
+def test_position_samples_belong_to_the_knot_interval_they_fall_in():
+    knots = np.arange(0, 70, 10, dtype=np.int64)  # T = 7: interior knots 1 … 5
+    t = np.array([3, 10, 14, 17, 26, 45, 52, 58], dtype=np.int64)
+    m = _imu_measurement(t, np.tile(t.astype(float)[:, None, None], (1, 1, 10)))
+    (first, alpha0), (second, alpha1) = samples_between_knots(m, knots)
+
+    def carried(values: np.ndarray) -> dict[int, float]:
+        return {
+            k: float(values[k, 0, 0]) for k in range(len(knots)) if np.isfinite(values[k, 0, 0])
+        }
+
+    # t ∈ (t_{k−1}, t_k] → knot k with α = (t − t_{k−1})/h; 3 comes before t_1 and 52, 58 need
+    # the end knot 6, so none of them is used; a second sample in an interval → slot 1
+    assert carried(first) == {1: 10, 2: 14, 3: 26, 5: 45}
+    assert alpha0[[1, 2, 3, 5]] == pytest.approx([1.0, 0.4, 0.6, 0.5])
+    assert carried(second) == {2: 17} and alpha1[2] == pytest.approx(0.7)
+    assert np.isfinite(second[2]).all()
+
+
+def test_samples_between_knots_are_predicted_by_blending_their_two_knots():
+    """(1 − α) s_{k−1} + α s_k for vectors; for quaternions q_{k−1} taken to q_k's side (q and
+    −q are one rotation) and the blend normalized."""
+    from estimator.smoother import Linearizer
+
+    root = Path(__file__).resolve().parent.parent
+    config = load_config(root / "configs" / "humanoid_push.toml")
+    measurements = read_log(root / "recordings" / "humanoid_push.mcap", config).measurements
+    t_ns = np.arange(5) * 10_000_000 + measurements["mocap_torso"].t_ns[0]
+    problem = build_problem(config, measurements, Settings(), t_ns)
+    lin = Linearizer(problem)
+    try:
+        vector = replace(problem.blocks[0], alpha=np.array([1.0, 1.0, 0.25, 0.5, 1.0]))
+        s = np.array([[1.0, 0.0, 0.0], [3.0, 4.0, 0.0], [5.0, 4.0, 2.0]])  # knots 1, 2, 3
+        blend, _ = lin.between_knots(vector, s, None)
+        assert blend == pytest.approx(np.array([[1, 0, 0], [1.5, 1, 0], [4, 4, 1]]))
+        half = np.sqrt(0.5)
+        q = np.array([[1.0, 0, 0, 0], [-half, 0, 0, -half], [0, 0, 0, 1.0]])  # 0°, 90°, 180° on z
+        blend, _ = lin.between_knots(replace(vector, kind="quat"), q, None)
+        assert np.linalg.norm(blend, axis=1) == pytest.approx(1.0)
+        # knot 2: α = 0.25 of the way from 0° to 90°, on q_2's side (−q_1)
+        expected = 0.75 * -q[0] + 0.25 * q[1]
+        assert blend[1] == pytest.approx(expected / np.linalg.norm(expected))
+        # knot 3: halfway from 90° to 180°: 135°
+        assert np.degrees(2 * np.arctan2(abs(blend[2, 3]), abs(blend[2, 0]))) == pytest.approx(135)
+    finally:
+        lin.close()

@@ -649,7 +649,9 @@ def filter_estimate(
     start = time.perf_counter()
     compiled = model_with_sensors(config)
     h = settings.h or float(compiled[0].opt.timestep)
-    problem = build_problem(config, measurements, settings, knot_grid(measurements, h), compiled)
+    problem = build_problem(
+        config, measurements, settings, knot_grid(measurements, h), compiled, at_sample_times=False
+    )
     qpos0 = initial_trajectory(problem.model, measurements, problem.t_ns)
     run = _Filter(problem, qpos0, method)
     qpos, bias, std = run.run(progress)
