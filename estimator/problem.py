@@ -364,11 +364,14 @@ def build_problem(
             continue
         adr = [_sensor_rows(model, s) for s in sensor_names[name]]
         noise = stream.noise
-        slots = (
-            samples_between_knots(m, t_ns)
-            if at_sample_times
-            else [(interpolated_at_knots(m, t_ns), None)]
-        )
+        # position-stage samples (poses, markers, encoders) by slot: (values, α or None)
+        slots: list[tuple[np.ndarray, np.ndarray | None]] = []
+        if stream.kind in POSITION_STAGE_KINDS:
+            slots = (
+                list(samples_between_knots(m, t_ns))
+                if at_sample_times
+                else [(interpolated_at_knots(m, t_ns), None)]
+            )
         if stream.kind in ("pose", "tf", "rigid_bodies"):
             for slot, (values, alpha) in enumerate(slots):  # values (T, E, 7)
                 for e in range(len(stream.elements)):
@@ -388,16 +391,19 @@ def build_problem(
                                 slot=slot,
                             )
                         )
-        elif stream.kind == "markers":  # one group of 3 rows per marker
+        elif stream.kind in ("markers", "joint_state"):  # a group per marker (3 rows), joint (1)
+            g, noise_key = (
+                (3, "position_std_m") if stream.kind == "markers" else (1, "position_std")
+            )
             for slot, (values, alpha) in enumerate(slots):
                 blocks.append(
                     SensorBlock(
                         name,
                         "vector",
                         np.concatenate(adr),
-                        values[:, :, :3].reshape(len(t_ns), -1),
-                        np.full(values.shape[1] * 3, noise["position_std_m"]),
-                        group=3,
+                        values[:, :, :g].reshape(len(t_ns), -1),
+                        np.full(values.shape[1] * g, noise[noise_key]),
+                        group=g,
                         alpha=alpha,
                         slot=slot,
                     )
@@ -424,20 +430,6 @@ def build_problem(
             )
             bias_of[name] = slice(nb, nb + 6)
             nb += 6
-        elif stream.kind == "joint_state":  # one group (row) per joint
-            for slot, (values, alpha) in enumerate(slots):
-                blocks.append(
-                    SensorBlock(
-                        name,
-                        "vector",
-                        np.concatenate(adr),
-                        values[:, :, 0],
-                        np.full(values.shape[1], noise["position_std"]),
-                        group=1,
-                        alpha=alpha,
-                        slot=slot,
-                    )
-                )
         elif stream.kind == "wrench":
             wrench, counts = averaged_at_knots(m, t_ns, "acc")
             blocks += _biased_pair(
@@ -546,6 +538,9 @@ def interpolated_at_knots(m: Measurement, t_ns: np.ndarray) -> np.ndarray:
     bracket each knot; NaN across gaps longer than 2.5 sample periods."""
     period = int(np.median(np.diff(m.t_ns))) if len(m) > 1 else 0
     return resample(m, t_ns, max_gap_ns=int(2.5 * period))
+
+
+POSITION_STAGE_KINDS = ("pose", "tf", "rigid_bodies", "markers", "joint_state")
 
 
 def samples_between_knots(m: Measurement, t_ns: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
