@@ -53,7 +53,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--path", choices=CHOICES["path"], help="physics path (default: config/native)"
     )
     parser.add_argument("--window", type=float, help="window length in s (default 4)")
-    parser.add_argument("--iterations", type=int, help="iterations per window (default 30)")
+    parser.add_argument(
+        "--iterations", type=int, help="Levenberg–Marquardt iterations per solve (default 30)"
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -166,12 +168,24 @@ def _report(
     return report
 
 
+def _stages(report: dict[str, Any]) -> str:
+    """What the iteration count adds up for the physics smoother's starts (`init`)."""
+    settings = report.get("settings", {})
+    if settings.get("method") != "physics":
+        return ""
+    return {
+        "best": " (kinematic + physics from it + physics from the measurements)",
+        "kinematic": " (kinematic + physics from it)",
+    }.get(settings.get("init", ""), "")
+
+
 def _print(report: dict[str, Any], summary: Summary) -> None:
     status = "converged" if all(summary.converged) else "NOT converged in every window"
     print(
         f"estimated {summary.duration_s:.2f} s of log: {summary.knots} knots of "
         f"{summary.h * 1e3:g} ms in {summary.windows} window(s), "
-        f"{sum(summary.iterations)} iterations, {status}; wall time {summary.wall_time_s:.1f} s "
+        f"{sum(summary.iterations)} iterations{_stages(report)}, {status}; wall time "
+        f"{summary.wall_time_s:.1f} s "
         f"({summary.wall_time_s / max(summary.duration_s, 1e-9):.1f}× the log)"
     )
     print(
