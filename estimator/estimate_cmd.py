@@ -173,10 +173,16 @@ def _stages(report: dict[str, Any]) -> str:
     settings = report.get("settings", {})
     if settings.get("method") != "physics":
         return ""
-    return {
-        "best": " (kinematic + physics from it + physics from the measurements)",
-        "kinematic": " (kinematic + physics from it)",
-    }.get(settings.get("init", ""), "")
+    if settings.get("init") == "kinematic":
+        return " (kinematic + physics from it)"
+    if settings.get("init") != "best":
+        return ""
+    kept = report.get("kept_starts", [])
+    return (
+        " (kinematic + physics from it + physics from the measurements; the lower cost was "
+        f"the start from the kinematic solution in {kept.count('kinematic')} of {len(kept)} "
+        "window(s))"
+    )
 
 
 def _print(report: dict[str, Any], summary: Summary) -> None:

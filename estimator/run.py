@@ -4,7 +4,7 @@ stitch, and collect the forces, contacts, uncertainty and residuals of the resul
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -55,6 +55,11 @@ class Summary:
     knots_evaluated: int = 0
     # unactuated dof → mean generalized force offset the model needed (N or N·m)
     model_error_mean: dict[str, float] = field(default_factory=dict)
+    # per window, where the kept physics solution started: "kinematic" | "measurements"
+    kept_starts: list[str] = field(default_factory=list)
+
+
+PASS_COUNTS = ("linearizations", "evaluations", "knots_linearized", "knots_evaluated")
 
 
 def estimate(
@@ -99,10 +104,9 @@ def smooth(
     std = np.full((T, model.nv), np.nan)
     iterations, converged = [], []
     warnings: list[str] = []
-    passes = dict.fromkeys(
-        ("linearizations", "evaluations", "knots_linearized", "knots_evaluated"), 0
-    )
+    passes = dict.fromkeys(PASS_COUNTS, 0)
     kept_until = 0
+    kept_starts: list[str] = []
     for i, s in enumerate(starts):
         e = min(T, s + W)
         window = {name: _within(m, t_ns[s], t_ns[e - 1]) for name, m in measurements.items()}
@@ -134,9 +138,11 @@ def smooth(
         solved = [solve_window(problem, q0, b0, covariance=False) for q0, b0 in starts_at]
         stages += solved
         # "best": the solution of lower cost; its covariance alone
-        result = with_covariance(
-            min(solved, key=lambda r: r.cost_final), range(keep_from - s, keep_to - s)
+        kept = min(range(len(solved)), key=lambda j: solved[j].cost_final)
+        kept_starts.append(
+            "kinematic" if len(stages) > len(solved) and kept == 0 else "measurements"
         )
+        result = with_covariance(solved[kept], range(keep_from - s, keep_to - s))
         qpos[keep_from:keep_to] = result.qpos[keep_from - s : keep_to - s]
         bias[keep_from:keep_to] = result.bias[keep_from - s : keep_to - s]
         std[keep_from:keep_to] = result.qpos_std[keep_from - s : keep_to - s]
@@ -157,7 +163,9 @@ def smooth(
             break
     assert bias is not None
     full = build_problem(config, measurements, settings, t_ns, compiled)
-    return finish(config, full, qpos, bias, std, start, iterations, converged, warnings, passes)
+    return finish(
+        config, full, qpos, bias, std, start, iterations, converged, warnings, passes, kept_starts
+    )
 
 
 def raw_estimate(
@@ -186,6 +194,7 @@ def finish(
     converged: list[bool],
     warnings: list[str],
     passes: Mapping[str, int],
+    kept_starts: Sequence[str] = (),
 ) -> tuple[Estimate, Summary]:
     """The Estimate of a whole-log trajectory and its Summary (any method)."""
     est = collect_estimate(problem, qpos, bias, std, config)
@@ -203,7 +212,8 @@ def finish(
         wall_time_s=time.perf_counter() - start,
         warnings=warnings,
         model_error_mean={dof: float(np.mean(e)) for dof, e in est.model_error.items()},
-        **passes,
+        kept_starts=list(kept_starts),
+        **{key: passes.get(key, 0) for key in PASS_COUNTS},
     )
     return est, summary
 

@@ -333,6 +333,7 @@ def test_init_best_keeps_the_lower_cost_of_both_starts(estimated, tmp_path):
         _, summary = _estimate_with(estimated, tmp_path / init, f'init = "{init}"')
         costs[init] = sum(summary["cost_by_type"].values())
     assert sum(best["cost_by_type"].values()) == pytest.approx(min(costs.values()), rel=1e-12)
+    assert best["kept_starts"] == [min(costs, key=costs.__getitem__)]  # one window
     assert best["iterations"][0] > max(  # every stage counted: kinematic + both physics solves
         json.loads((tmp_path / init / "out" / "summary.json").read_text())["iterations"][0]
         for init in costs
