@@ -45,6 +45,8 @@ class _PipeWriter(threading.Thread):
                     self.resume.wait(timeout=20)
                 os.write(self.write_fd, self.data[at : at + self.piece])
                 self.written = at + self.piece
+        except BrokenPipeError:  # the reader stopped reading (a stream it rejected)
+            pass
         finally:
             os.close(self.write_fd)
 
