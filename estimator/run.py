@@ -122,7 +122,7 @@ def smooth(
         last = e == T
         keep_from = s if i == 0 else s + overlap // 2
         keep_to = e if last else e - overlap // 2
-        starts_at = [(init_q, init_b)]  # where the physics solve starts
+        starts_at = {"measurements": (init_q, init_b)}  # where the physics solve starts
         if settings.init in ("kinematic", "best") and settings.method == "physics":
             # (its bias dims are the physics problem's first: no model-error offset)
             first = build_problem(
@@ -132,16 +132,18 @@ def smooth(
             kinematic_b = init_b.copy()
             kinematic_b[:, : first.nb] = stages[0].bias
             kinematic = (stages[0].qpos, kinematic_b)
-            starts_at = (
-                [kinematic] if settings.init == "kinematic" else [kinematic, (init_q, init_b)]
-            )
-        solved = [solve_window(problem, q0, b0, covariance=False) for q0, b0 in starts_at]
-        stages += solved
+            if settings.init == "kinematic":
+                starts_at = {"kinematic": kinematic}
+            else:
+                starts_at = {"kinematic": kinematic, **starts_at}
+        solved = {
+            name: solve_window(problem, q0, b0, covariance=False)
+            for name, (q0, b0) in starts_at.items()
+        }
+        stages += solved.values()
         # "best": the solution of lower cost; its covariance alone
-        kept = min(range(len(solved)), key=lambda j: solved[j].cost_final)
-        kept_starts.append(
-            "kinematic" if len(stages) > len(solved) and kept == 0 else "measurements"
-        )
+        kept = min(solved, key=lambda name: solved[name].cost_final)
+        kept_starts.append(kept)
         result = with_covariance(solved[kept], range(keep_from - s, keep_to - s))
         qpos[keep_from:keep_to] = result.qpos[keep_from - s : keep_to - s]
         bias[keep_from:keep_to] = result.bias[keep_from - s : keep_to - s]
