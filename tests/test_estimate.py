@@ -323,14 +323,21 @@ def test_init_kinematic_starts_the_physics_from_the_kinematic_smoother(estimated
 def test_init_best_keeps_the_lower_cost_of_both_starts(estimated, tmp_path):
     """The default, init = "best": the window (the whole 1.5 s log) solved from the
     measurements and from the kinematic smoother's solution; the estimate is the solution of
-    lower cost."""
-    out, _, _ = estimated
+    lower cost. Each start alone: `init` in the config, or `--init` on the command line."""
+    out, log, config = estimated
     best = json.loads((out / "summary.json").read_text())
     assert best["settings"]["init"] == "best"
     costs = {}
     for init in ("measurements", "kinematic"):
-        (tmp_path / init).mkdir()
-        _, summary = _estimate_with(estimated, tmp_path / init, f'init = "{init}"')
+        folder = tmp_path / init / "out"
+        if init == "kinematic":
+            (tmp_path / init).mkdir()
+            _estimate_with(estimated, tmp_path / init, f'init = "{init}"')
+        else:
+            argv = ["estimate", str(log), "--config", str(config), "--init", init]
+            assert main([*argv, "--out", str(folder), "--quiet"]) == 0
+        summary = json.loads((folder / "summary.json").read_text())
+        assert summary["settings"]["init"] == init and summary["kept_starts"] == [init]
         costs[init] = sum(summary["cost_by_type"].values())
     assert sum(best["cost_by_type"].values()) == pytest.approx(min(costs.values()), rel=1e-12)
     assert best["kept_starts"] == [min(costs, key=costs.__getitem__)]  # one window
