@@ -77,7 +77,7 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
     ),
     "window_s": (4.0, "length of one smoothing window, s"),
     "overlap_s": (0.5, "overlap of consecutive windows, s"),
-    "max_iterations": (30, "Levenberg–Marquardt iterations per window"),
+    "max_iterations": (30, "Levenberg–Marquardt iterations per solve (a window has up to 3)"),
     "init": (
         "best",
         "where each window's physics solve starts: measurements (interpolated to the knots) | "
@@ -368,7 +368,7 @@ def build_problem(
         slots: list[tuple[np.ndarray, np.ndarray | None]] = []
         if stream.kind in POSITION_STAGE_KINDS:
             slots = (
-                list(samples_between_knots(m, t_ns))
+                samples_between_knots(m, t_ns)
                 if at_sample_times
                 else [(interpolated_at_knots(m, t_ns), None)]
             )
@@ -543,7 +543,9 @@ def interpolated_at_knots(m: Measurement, t_ns: np.ndarray) -> np.ndarray:
 POSITION_STAGE_KINDS = ("pose", "tf", "rigid_bodies", "markers", "joint_state")
 
 
-def samples_between_knots(m: Measurement, t_ns: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+def samples_between_knots(
+    m: Measurement, t_ns: np.ndarray
+) -> list[tuple[np.ndarray, np.ndarray | None]]:
     """The samples of `m` on the knots, by slot: per slot, values (T, E, K) (NaN where a knot
     has no sample in that slot) and α (T,). The sample at t ∈ (t_{k−1}, t_k] belongs to knot k,
     α_k = (t − t_{k−1})/h, its first such sample to slot 0, a second to slot 1, …. Only knots
@@ -555,7 +557,7 @@ def samples_between_knots(m: Measurement, t_ns: np.ndarray) -> list[tuple[np.nda
     inside = ((k >= 2) & (k <= T - 2)) | ((k == 1) & (m.t_ns == t_ns[min(1, T - 1)]))
     k, t, values = k[inside], m.t_ns[inside], m.values[inside]
     slot = np.arange(len(k)) - np.searchsorted(k, k, side="left")  # samples sorted by time
-    out = []
+    out: list[tuple[np.ndarray, np.ndarray | None]] = []
     for s in range(int(slot.max()) + 1 if len(k) else 1):
         mine = slot == s
         slot_values = np.full((T, *m.values.shape[1:]), np.nan)
