@@ -152,7 +152,7 @@ def smooth(
             qpos[keep_to:e] = result.qpos[keep_to - s :]
         kept_until = keep_to
         warnings.extend(f"window {i + 1}: {w}" for w in result.warnings)
-        iterations.append(sum(r.iterations for r in stages))  # both stages' count
+        iterations.append(sum(r.iterations for r in stages))  # every solve's count
         for r in stages:
             passes["linearizations"] += r.linearizations
             passes["evaluations"] += r.evaluations
