@@ -2,7 +2,7 @@
 
     python benchmarks/suite.py [--out DIR] [--work DIR] [--scenarios NAME ...]
         [--conditions NAME ...] [--methods NAME ...] [--duration S] [--seed N] [--jobs N]
-        [--timeout S]
+        [--timeout S] [--no-mismatch]
 
 For every scenario and condition (`physfuse simulate SCENARIO --condition CONDITION`,
 estimator/simulate/conditions.py) it simulates a log with ground truth (cached in
@@ -21,6 +21,11 @@ columns), then the checklist of the targets:
     2. during mocap occlusions its position and orientation errors are at most a third of
        the kinematic smoother's;
     3. in nominal conditions its net contact force error is at most 10% of the robot's weight.
+
+--no-mismatch simulates every log with the robot exactly its model (`physfuse simulate
+--no-mismatch`; the same seed draws the same noise, controller and pushes): what is left of a
+miss then is the estimator's, not the model's. Its logs and runs are kept apart in WORK
+(`-exact-model` in their names); the `mismatch` condition contradicts it.
 
 It writes OUT/suite.json (settings, every run with its metrics and errors, the checklist),
 OUT/suite.txt (the printed table and checklist) and one PNG per metric (OUT/<metric>.png:
@@ -122,11 +127,21 @@ def call(argv: Sequence[str], timeout_s: float, transcript: Path) -> str | None:
     return lines[-1] if lines else f"physfuse {argv[0]} exited with status {proc.returncode}"
 
 
+EXACT_MODEL = "-exact-model"  # in the names of --no-mismatch logs and runs
+
+
 def simulate_log(
-    scenario: str, condition: str, seed: int, duration_s: float, logs: Path, timeout_s: float
+    scenario: str,
+    condition: str,
+    seed: int,
+    duration_s: float,
+    logs: Path,
+    timeout_s: float,
+    mismatch: bool = True,
 ) -> tuple[Path, Path, str | None]:
-    """The cached log and config of (scenario, condition, seed, duration); simulated if absent."""
-    stem = f"{scenario}-{condition}-seed{seed}-{duration_s:g}s"
+    """The cached log and config of (scenario, condition, seed, duration, mismatch); simulated
+    if absent. mismatch=False: the robot is exactly its model."""
+    stem = f"{scenario}-{condition}-seed{seed}-{duration_s:g}s" + ("" if mismatch else EXACT_MODEL)
     log, config = logs / f"{stem}.mcap", logs / f"{stem}.toml"
     if log.exists() and config.exists():
         return log, config, None
@@ -135,7 +150,7 @@ def simulate_log(
         "simulate", scenario, "--condition", condition, "--seed", str(seed),
         "--duration", f"{duration_s:g}", "--out", str(partial_log),
         "--config-out", str(partial_config), "--quiet",
-    ]  # fmt: skip
+    ] + ([] if mismatch else ["--no-mismatch"])  # fmt: skip
     error = call(argv, timeout_s, logs / f"{stem}.txt")
     if error is None:  # only a complete log enters the cache
         partial_config.replace(config)
@@ -224,8 +239,11 @@ def run_suite(
     work: Path,
     reuse: bool = False,
     say: Callable[[str], None] = print,
+    mismatch: bool = True,
 ) -> list[Run]:
-    """Simulate every (scenario, condition) log, then estimate and evaluate every method."""
+    """Simulate every (scenario, condition) log, then estimate and evaluate every method.
+
+    mismatch=False: every log simulated with the robot exactly its model."""
     logs = work / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     pairs = [(s, c) for s in scenarios for c in conditions]
@@ -234,7 +252,8 @@ def run_suite(
             zip(
                 pairs,
                 pool.map(
-                    lambda p: simulate_log(p[0], p[1], seed, duration_s, logs, timeout_s), pairs
+                    lambda p: simulate_log(p[0], p[1], seed, duration_s, logs, timeout_s, mismatch),
+                    pairs,
                 ),
                 strict=True,
             )
@@ -248,7 +267,8 @@ def run_suite(
             if error is not None:
                 run.error = f"simulate: {error}"
                 return run
-            folder = work / "runs" / scenario / condition / method
+            runs = "runs" + ("" if mismatch else EXACT_MODEL)
+            folder = work / runs / scenario / condition / method
             run = estimate_and_evaluate(run, log, config, folder, timeout_s, method_flag, reuse)
             status = f"failed: {run.error}" if run.error else f"{run.process_s:.0f} s"
             status += " (reused)" if run.reused else ""
@@ -561,15 +581,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         action="store_true",
         help="keep the metrics of runs already in WORK (newer than their log): re-tabulate",
     )
+    parser.add_argument(
+        "--no-mismatch",
+        action="store_true",
+        help="simulate the robot exactly as its model (not with the `mismatch` condition)",
+    )
     args = parser.parse_args(argv)
     if not args.duration > 0 or args.jobs < 1 or args.timeout <= 0:
         parser.error("--duration and --timeout must be positive, --jobs at least 1")
+    if args.no_mismatch and "mismatch" in args.conditions:
+        parser.error(
+            "--no-mismatch contradicts the `mismatch` condition: pass --conditions without it"
+        )
     work = args.work.resolve()  # the subprocesses run in the repository root
     args.out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
+    exact = ", the robot exactly its model" if args.no_mismatch else ""
     print(
         f"suite: {len(args.scenarios)} scenarios × {len(args.conditions)} conditions × "
-        f"{len(args.methods)} methods, {args.duration:g} s logs, {args.jobs} job(s); {work}"
+        f"{len(args.methods)} methods, {args.duration:g} s logs{exact}, {args.jobs} job(s); "
+        f"{work}"
     )
     runs = run_suite(
         args.scenarios,
@@ -581,6 +612,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.timeout,
         work,
         args.reuse_runs,
+        mismatch=not args.no_mismatch,
     )
     wall = time.perf_counter() - start
     checks = checklist(runs)
@@ -593,6 +625,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "methods": args.methods,
             "duration_s": args.duration,
             "seed": args.seed,
+            "model_mismatch": not args.no_mismatch,
             "jobs": args.jobs,
             "timeout_s": args.timeout,
             "work": str(work),

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
 
 ROOT = Path(__file__).resolve().parents[1]
 _spec = importlib.util.spec_from_file_location("suite", ROOT / "benchmarks" / "suite.py")
@@ -107,6 +111,23 @@ def test_a_failing_step_becomes_one_line_and_a_log_is_simulated_once(tmp_path):
     suite.estimate_and_evaluate(run, log, tmp_path / "missing.toml", folder, 120, False)
     assert run.error is not None and "missing.toml" in run.error and "\n" not in run.error
     assert run.metrics == {}
+
+
+def test_no_mismatch_simulates_the_model_exactly_into_its_own_cache(tmp_path):
+    def body_masses(log: Path) -> dict:
+        with log.open("rb") as f:
+            meta = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+        return json.loads(meta["physfuse.mismatch"]["body_mass"])
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    drawn, _, error = suite.simulate_log("single_joint", "nominal", 0, 0.1, logs, 120)
+    exact, _, exact_error = suite.simulate_log("single_joint", "nominal", 0, 0.1, logs, 120, False)
+    assert error is None and exact_error is None and exact != drawn
+    assert exact.name == "single_joint-nominal-seed0-0.1s-exact-model.mcap"
+    assert body_masses(drawn) != {} and body_masses(exact) == {}
+    with pytest.raises(SystemExit):  # argparse's one-line error
+        suite.main(["--no-mismatch", "--out", str(tmp_path / "out")])
 
 
 def test_a_baseline_without_the_method_option_is_reported_not_run(tmp_path):
