@@ -43,6 +43,7 @@ from estimator.errors import ConfigError
 from estimator.logs.align import resample
 from estimator.logs.measurements import Measurement
 from physics.dynamics import make_dynamics
+from physics.errors import UnsupportedModelError
 from physics.softness import Softness
 
 _OBJ = mujoco.mjtObj
@@ -102,6 +103,11 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
         "σ of that correction per contact force component, in units of the robot's weight "
         "(0: no correction)",
     ),
+    "softness_eps": (
+        0.05,
+        "ε of the contacts' and constraints' softness, R = ε·diag(A) (paper eq. 27)",
+    ),
+    "softness_kappa": (0.02, "κ, their error-reduction time constant in s (eq. 28; ≥ 2h)"),
     "bias_prior_accel": (0.5, "σ of the first accelerometer bias, m/s²"),
     "bias_prior_gyro": (0.05, "σ of the first gyro bias, rad/s"),
     "fd_eps": (1e-6, "finite-difference step of mjd_inverseFD"),
@@ -145,6 +151,8 @@ class Settings:
     model_error_walk: float = 1.0
     contact_forces: str = "balanced"
     contact_force_std: float = 1.0
+    softness_eps: float = 0.05  # Softness()'s, the simulator's nominal model
+    softness_kappa: float = 0.02
     bias_prior_accel: float = 0.5
     bias_prior_gyro: float = 0.05
     fd_eps: float = 1e-6
@@ -155,6 +163,11 @@ class Settings:
         if self.jerk_kernel != "auto":
             return self.jerk_kernel
         return "cauchy" if self.method == "physics" else "none"
+
+    @property
+    def softness(self) -> Softness:
+        """The model's softness (paper Section V), as these settings give it."""
+        return Softness(eps=self.softness_eps, kappa=self.softness_kappa)
 
     @classmethod
     def from_config(cls, config: Config) -> Settings:
@@ -181,7 +194,17 @@ class Settings:
                     f"({SETTINGS[key][1]})"
                 )
             values[key] = int(value) if isinstance(default, int) else value
-        return cls(**values)
+        settings = cls(**values)
+        try:
+            settings.softness  # noqa: B018 (validates ε and κ)
+        except UnsupportedModelError as err:
+            raise ConfigError(f"{config.path}: estimator.{_setting_named(err)}") from None
+        return settings
+
+
+def _setting_named(err: UnsupportedModelError) -> str:
+    """Softness's message "softness kappa=… is …" as the setting's: "softness_kappa=… is …"."""
+    return str(err).replace("softness ", "softness_", 1)
 
 
 @dataclass(frozen=True)
@@ -346,10 +369,13 @@ def build_problem(
     (the filters, which step from knot to knot).
     """
     model, sensor_names = compiled or model_with_sensors(config)
-    Softness().apply(model)
     h = settings.h or float(model.opt.timestep)
     if abs(h - model.opt.timestep) > 1e-12:
         model.opt.timestep = h
+    try:
+        settings.softness.apply(model)
+    except UnsupportedModelError as err:  # κ below 2h
+        raise ConfigError(f"{config.path}: estimator.{_setting_named(err)}") from None
     if t_ns is None:
         t_ns = knot_grid(measurements, h)
     blocks: list[SensorBlock] = []
@@ -771,7 +797,9 @@ class KnotModel:
         self.model = self.problem.model
         self.rotations = _RotationDofs.of(self.model)
         self.reference = (
-            make_dynamics(self.model, "reference") if self.path == "reference" else None
+            make_dynamics(self.model, "reference", self.problem.settings.softness)
+            if self.path == "reference"
+            else None
         )
 
     def evaluate(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, ...]:

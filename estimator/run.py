@@ -383,7 +383,7 @@ def collect_estimate(
     model, h = problem.model, problem.h
     v = velocities(model, qpos, h)
     a = accelerations(v, h)
-    dyn = make_dynamics(model, "native")
+    dyn = make_dynamics(model, "native", problem.settings.softness)
     qfrc = np.full((problem.T, model.nv), np.nan)
     constraints = []
     balance = (

@@ -380,6 +380,39 @@ def test_bad_settings_and_missing_logs_are_one_line_errors(estimated, tmp_path, 
     assert "none.mcap" in capsys.readouterr().err
 
 
+def test_softness_settings_reach_the_residuals_and_the_reported_forces(estimated, tmp_path, capsys):
+    """softness_eps and softness_kappa set the model of the physics residuals and of the
+    reported forces alike; a value MuJoCo would clamp is a one-line error naming the setting."""
+    _, log, config_path = estimated
+    softer = tmp_path / "softer.toml"
+    softer.write_text(
+        config_path.read_text() + "\n[estimator]\nsoftness_eps = 0.06\nsoftness_kappa = 0.03\n"
+    )
+    forces = {}
+    for path in (config_path, softer):
+        config = load_config(path, extra_sections=("estimator",))
+        measurements = read_log(log, config).measurements
+        t_ns = knot_grid(measurements, float(config.load_model().opt.timestep))[:30]
+        problem = build_problem(config, measurements, Settings.from_config(config), t_ns)
+        qpos = initial_trajectory(problem.model, measurements, t_ns)
+        lin = Linearizer(problem)
+        u = lin.terms(qpos, False).u
+        lin.close()
+        std = np.full((problem.T, problem.model.nv), np.nan)
+        estimate = collect_estimate(problem, qpos, np.zeros((problem.T, problem.nb)), std, config)
+        np.testing.assert_allclose(estimate.qfrc_inverse[1:-1], u, rtol=1e-9, atol=1e-9)
+        forces[path] = u
+    np.testing.assert_allclose(problem.model.geom_solimp[:, :2], 1 / 1.06)
+    assert np.all(problem.model.geom_solref[:, 0] == 0.03)
+    assert np.abs(forces[softer] - forces[config_path]).max() > 1.0  # N: the feet are in contact
+    clamped = tmp_path / "clamped.toml"
+    clamped.write_text(config_path.read_text() + "\n[estimator]\nsoftness_kappa = 0.001\n")
+    capsys.readouterr()
+    assert main(["estimate", str(log), "--config", str(clamped), "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "estimator.softness_kappa=0.001 s is below" in err
+
+
 def test_initialization_survives_a_dropped_first_frame():
     """Without the first mocap frames, the first knots hold the first seen pose (no NaN) and
     the measured knots are the measurements."""
