@@ -15,6 +15,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "inspect": ("estimator.inspect_cmd", "topics, rates, gaps and bad samples of a robot log"),
     "simulate": ("estimator.simulate_cmd", "simulate a robot log with ground truth (MCAP)"),
     "estimate": ("estimator.estimate_cmd", "smooth a robot log into motion and contact forces"),
+    "calibrate": (
+        "estimator.calibrate_cmd",
+        "fit the model's contact softness to a log (by the mocap cost of the estimate)",
+    ),
     "evaluate": (
         "estimator.evaluate_cmd",
         "errors of an estimate against ground truth, or of a held-out sensor's prediction",

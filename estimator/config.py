@@ -75,6 +75,7 @@ from physics.errors import PhysicsError
 from physics.model import MODEL_DIR, bundled_models, load_model
 
 KINDS = ("pose", "tf", "rigid_bodies", "markers", "imu", "joint_state", "command", "wrench")
+MOCAP_KINDS = ("pose", "tf", "rigid_bodies", "markers")  # world-frame poses and positions
 STAMPS = ("header", "log")
 TRAJECTORY_FIELDS = ("positions", "velocities", "accelerations", "effort")
 

@@ -31,7 +31,7 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
-from estimator.config import Config, load_config
+from estimator.config import MOCAP_KINDS, Config, load_config
 from estimator.errors import LogError, PhysfuseError
 from estimator.evaluate import (
     SUMMARY_KEYS,
@@ -58,7 +58,6 @@ from physics.errors import PhysicsError
 from physics.model import load_model
 
 _OBJ = mujoco.mjtObj
-MOCAP_KINDS = ("pose", "tf", "rigid_bodies", "markers")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,0 +1,157 @@
+"""Calibration of the model's contact softness to a log (paper Section V: ε, κ).
+
+A robot softer or stiffer than its model sinks into the floor by another depth, and the
+physics prior holds the estimate at the model's depth, off the mocap. Encoders and IMUs do
+not see that depth; the mocap does. The criterion is therefore the mocap part of the
+estimate's robust cost (its pose, tf, rigid-body and marker streams), profiled over one
+setting: each point is a whole estimate with that value (`init = "measurements"`, one solve
+per window, so the profile does not switch between starts).
+
+Search: a geometric grid around the config's value (×1.15 steps) or over a given range; then
+the vertex of the parabola, in log(value), through the grid's lowest point and its two
+neighbours. The value kept is the evaluated one with the lowest mocap cost.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tomlkit
+
+from estimator.config import MOCAP_KINDS, Config
+from estimator.errors import ConfigError, PhysfuseError
+from estimator.logs.measurements import Measurement
+from estimator.problem import Settings
+from estimator.run import estimate
+
+CALIBRATED = ("softness_eps", "softness_kappa")
+GRID_RATIO = 1.15  # between neighbouring grid values
+GRID_POINTS = 7
+
+
+@dataclass
+class Point:
+    value: float
+    mocap_cost: float  # the criterion
+    cost: float  # the whole estimate's robust cost
+    wall_time_s: float
+
+
+@dataclass
+class Calibration:
+    setting: str
+    initial: float  # the config's value
+    best: float
+    points: list[Point]  # in evaluation order: the grid, then the parabola's vertex
+    at_edge: bool  # the grid's lowest point is an end of it: the minimum may lie beyond
+
+    def point(self, value: float) -> Point:
+        return next(p for p in self.points if p.value == value)
+
+
+def default_grid(initial: float, lower: float) -> np.ndarray:
+    """GRID_POINTS values around `initial`, ×GRID_RATIO apart, none below `lower`."""
+    grid = initial * GRID_RATIO ** (np.arange(GRID_POINTS) - GRID_POINTS // 2)
+    if grid[0] < lower:
+        grid = lower * GRID_RATIO ** np.arange(GRID_POINTS)
+    return grid
+
+
+def lower_bound(setting: str, config: Config) -> float:
+    """The smallest valid value: κ ≥ 2h (eq. 28 with the model's timestep), ε > 0."""
+    if setting == "softness_kappa":
+        return 2 * float(config.load_model().opt.timestep)
+    return 0.0
+
+
+def calibrate(
+    config: Config,
+    measurements: Mapping[str, Measurement],
+    settings: Settings,
+    setting: str = "softness_eps",
+    grid: Sequence[float] | None = None,
+    progress: Callable[[Point], None] | None = None,
+) -> Calibration:
+    """The value of `setting` (one of CALIBRATED) whose physics estimate of the log has the
+    lowest mocap cost; `grid` defaults to `default_grid` around the settings' value."""
+    if setting not in CALIBRATED:
+        raise ConfigError(f"calibrate: {setting!r} is not calibrated; expected one of {CALIBRATED}")
+    mocap = [name for name, s in config.streams.items() if s.kind in MOCAP_KINDS]
+    if not mocap:
+        raise ConfigError(
+            f"{config.path}: calibration needs a mocap stream ({', '.join(MOCAP_KINDS)}), "
+            "which sees how deep the robot sits; the config has none"
+        )
+    initial = float(getattr(settings, setting))
+    lower = lower_bound(setting, config)
+    values = list(default_grid(initial, lower) if grid is None else grid)
+    if len(values) < 3 or min(values) < lower or min(values) <= 0:
+        raise ConfigError(
+            f"calibrate: {setting} needs 3 or more grid values, each > 0 and ≥ {lower:g}; got "
+            + ", ".join(f"{v:.4g}" for v in values)
+        )
+    base = replace(settings, method="physics", init="measurements")
+    points: list[Point] = []
+
+    def evaluate(value: float) -> Point:
+        start = time.perf_counter()
+        changed: dict[str, Any] = {setting: value}
+        _, summary = estimate(config, measurements, replace(base, **changed))
+        costs = summary.cost_by_type
+        point = Point(
+            value=value,
+            mocap_cost=sum(costs.get(name, 0.0) for name in mocap),
+            cost=sum(costs.values()),
+            wall_time_s=time.perf_counter() - start,
+        )
+        points.append(point)
+        if progress:
+            progress(point)
+        return point
+
+    on_grid = [evaluate(v) for v in sorted(values)]
+    i = min(range(len(on_grid)), key=lambda k: on_grid[k].mocap_cost)
+    at_edge = i in (0, len(on_grid) - 1)
+    if not at_edge:
+        vertex = parabola_vertex(
+            [math.log(p.value) for p in on_grid[i - 1 : i + 2]],
+            [p.mocap_cost for p in on_grid[i - 1 : i + 2]],
+        )
+        if vertex is not None:
+            evaluate(math.exp(vertex))
+    best = min(points, key=lambda p: p.mocap_cost)
+    return Calibration(setting, initial, best.value, points, at_edge)
+
+
+def parabola_vertex(x: Sequence[float], y: Sequence[float]) -> float | None:
+    """The minimum of the parabola through three points (x ascending, the middle one lowest);
+    None where they do not curve upward."""
+    a, b, _ = np.polyfit(x, y, 2)
+    if a <= 0:
+        return None
+    return float(np.clip(-b / (2 * a), x[0], x[2]))
+
+
+def config_with(source: Path, target: Path, setting: str, value: float) -> None:
+    """`source` with [estimator] `setting` = value, its comments kept; a relative model path
+    is rewritten relative to `target`'s folder."""
+    document = tomlkit.parse(source.read_text())
+    model = document.get("model")
+    if isinstance(model, str) and model.endswith(".xml") and not os.path.isabs(model):
+        moved = os.path.relpath(source.parent / model, target.parent)
+        document["model"] = moved
+    if "estimator" not in document:
+        document.add("estimator", tomlkit.table())
+    document["estimator"][setting] = float(f"{value:.4g}")
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(tomlkit.dumps(document))
+    except OSError as err:
+        raise PhysfuseError(f"{target}: cannot write the config ({err.strerror})") from err
