@@ -2,7 +2,7 @@
 
     python benchmarks/suite.py [--out DIR] [--work DIR] [--scenarios NAME ...]
         [--conditions NAME ...] [--methods NAME ...] [--duration S] [--seed N] [--jobs N]
-        [--timeout S] [--no-mismatch]
+        [--timeout S] [--no-mismatch] [--no-calibration]
 
 For every scenario and condition (`physfuse simulate SCENARIO --condition CONDITION`,
 estimator/simulate/conditions.py) it simulates a log with ground truth (cached in
@@ -11,10 +11,12 @@ WORK/logs by scenario, condition, seed and duration), then for every method runs
     physfuse estimate LOG --config CONFIG --out RUN --method METHOD --quiet
     physfuse evaluate RUN/estimate.mcap --truth LOG --config CONFIG --out RUN
 
-each as a subprocess with a time limit; a step that fails becomes a "failed: <its last
-error line>" entry instead of stopping the suite. It prints one table (scenario × condition
-× method rows, the metrics of `metrics.json`'s "summary" and wall time / log duration as
-columns), then the checklist of the targets:
+each as a subprocess with a time limit. CONFIG is the log's own with its robot's contact
+softness, fitted first by `physfuse calibrate` on the robot's nominal log (the `mismatch`
+condition's robot on its own log; --no-calibration: the log's config as simulated). A step
+that fails becomes a "failed: <its last error line>" entry instead of stopping the suite. It
+prints one table (scenario × condition × method rows, the metrics of `metrics.json`'s
+"summary" and wall time / log duration as columns), then the checklist of the targets:
 
     1. on every scenario and condition the physics smoother's position, orientation,
        joint-angle and velocity errors are lower than every baseline's;
@@ -51,6 +53,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from estimator.calibrate import config_with  # noqa: E402
 from estimator.evaluate import TRAJECTORY_KEYS  # noqa: E402
 from estimator.simulate import SCENARIOS  # noqa: E402
 from estimator.simulate.conditions import CONDITIONS  # noqa: E402
@@ -127,6 +130,7 @@ def call(argv: Sequence[str], timeout_s: float, transcript: Path) -> str | None:
     return lines[-1] if lines else f"physfuse {argv[0]} exited with status {proc.returncode}"
 
 
+CALIBRATED_SETTING = "softness_eps"  # fitted per robot before the runs (--no-calibration)
 EXACT_MODEL = "-exact-model"  # in the names of --no-mismatch logs and runs
 
 
@@ -156,6 +160,68 @@ def simulate_log(
         partial_config.replace(config)
         partial_log.replace(log)
     return log, config, error
+
+
+@dataclass
+class Calibration:
+    """`physfuse calibrate` of one robot: the config its runs take, or why there is none."""
+
+    scenario: str
+    condition: str  # of the log it was fitted on
+    setting: str
+    value: float | None = None
+    initial: float | None = None
+    config: str = ""  # the calibrated config (empty: it failed)
+    error: str | None = None
+    process_s: float = 0.0
+
+
+def calibration_condition(condition: str) -> str:
+    """The log a condition's robot is calibrated on: the nominal one, which simulates the same
+    robot (conditions.py), except under `mismatch` (another robot): its own."""
+    return "mismatch" if condition == "mismatch" else "nominal"
+
+
+def calibrate_robot(
+    scenario: str,
+    condition: str,
+    setting: str,
+    log: Path,
+    config: Path,
+    folder: Path,
+    timeout_s: float,
+    reuse: bool = False,
+) -> Calibration:
+    """`physfuse calibrate LOG --config CONFIG --setting SETTING` into `folder`, which then
+    holds the calibrated config.toml. reuse: keep a calibration newer than the log."""
+    result = Calibration(scenario, condition, setting)
+    folder.mkdir(parents=True, exist_ok=True)
+    report, calibrated = folder / "calibration.json", folder / "config.toml"
+    start = time.perf_counter()
+    if not (
+        reuse
+        and all(
+            p.exists() and p.stat().st_mtime > log.stat().st_mtime for p in (report, calibrated)
+        )
+    ):
+        report.unlink(missing_ok=True)
+        calibrated.unlink(missing_ok=True)
+        argv = [
+            "calibrate", str(log), "--config", str(config), "--setting", setting,
+            "--out", str(folder), "--config-out", str(calibrated), "--quiet",
+        ]  # fmt: skip
+        (folder / "transcript.txt").write_text("")
+        result.error = call(argv, timeout_s, folder / "transcript.txt")
+    result.process_s = time.perf_counter() - start
+    if result.error is None:
+        try:
+            fitted = json.loads(report.read_text())
+            result.value, result.initial = float(fitted["best"]), float(fitted["initial"])
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            result.error = f"cannot read {report}: {err}"
+        else:
+            result.config = str(calibrated)
+    return result
 
 
 def estimate_and_evaluate(
@@ -240,24 +306,46 @@ def run_suite(
     reuse: bool = False,
     say: Callable[[str], None] = print,
     mismatch: bool = True,
-) -> list[Run]:
-    """Simulate every (scenario, condition) log, then estimate and evaluate every method.
+    calibrate: str | None = None,
+) -> tuple[list[Run], list[Calibration]]:
+    """Simulate every (scenario, condition) log, calibrate each robot's `calibrate` setting
+    (None: none) on its `calibration_condition` log, then estimate and evaluate every method
+    with the calibrated config.
 
     mismatch=False: every log simulated with the robot exactly its model."""
     logs = work / "logs"
     logs.mkdir(parents=True, exist_ok=True)
+    suffix = "" if mismatch else EXACT_MODEL
     pairs = [(s, c) for s in scenarios for c in conditions]
+    robots = list(dict.fromkeys((s, calibration_condition(c)) for s, c in pairs))
+    to_simulate = list(dict.fromkeys(pairs + (robots if calibrate else [])))
     with ThreadPoolExecutor(jobs) as pool:
         simulated = dict(
             zip(
-                pairs,
+                to_simulate,
                 pool.map(
                     lambda p: simulate_log(p[0], p[1], seed, duration_s, logs, timeout_s, mismatch),
-                    pairs,
+                    to_simulate,
                 ),
                 strict=True,
             )
         )
+
+        def fit(robot: tuple[str, str]) -> Calibration:
+            scenario, condition = robot
+            log, config, error = simulated[robot]
+            if error is not None:
+                return Calibration(scenario, condition, str(calibrate), error=f"simulate: {error}")
+            folder = work / f"calibration{suffix}" / scenario / condition
+            result = calibrate_robot(
+                scenario, condition, str(calibrate), log, config, folder, timeout_s, reuse
+            )
+            status = f"failed: {result.error}" if result.error else f"{result.value:.4g}"
+            say(f"  {scenario:15s} {condition:12s} calibrated {calibrate}: {status}")
+            return result
+
+        calibrations = list(pool.map(fit, robots)) if calibrate else []
+        fitted = {(c.scenario, c.condition): c for c in calibrations if c.value is not None}
         method_flag = estimate_has_method_option()
 
         def one(key: tuple[str, str, str]) -> Run:
@@ -267,8 +355,13 @@ def run_suite(
             if error is not None:
                 run.error = f"simulate: {error}"
                 return run
-            runs = "runs" + ("" if mismatch else EXACT_MODEL)
-            folder = work / runs / scenario / condition / method
+            folder = work / f"runs{suffix}" / scenario / condition / method
+            # the log's config with its robot's value (a failed calibration: as it is)
+            robot = fitted.get((scenario, calibration_condition(condition)))
+            if robot is not None and robot.value is not None:
+                calibrated = folder.parent / "calibrated.toml"
+                config_with(config, calibrated, robot.setting, robot.value)
+                config = calibrated
             run = estimate_and_evaluate(run, log, config, folder, timeout_s, method_flag, reuse)
             status = f"failed: {run.error}" if run.error else f"{run.process_s:.0f} s"
             status += " (reused)" if run.reused else ""
@@ -276,7 +369,21 @@ def run_suite(
             return run
 
         keys = [(s, c, m) for s, c in pairs for m in methods]
-        return list(pool.map(one, keys))
+        return list(pool.map(one, keys)), calibrations
+
+
+def calibration_text(calibrations: Sequence[Calibration]) -> str:
+    """One line per calibrated robot: the value its runs took, or why they took the log's."""
+    if not calibrations:
+        return ""
+    lines = ["calibrated (physfuse calibrate on the log named; every method's config):"]
+    for c in calibrations:
+        if c.error:
+            shown = f"failed, the log's config used: {c.error}"
+        else:
+            shown = f"{c.setting} = {c.value:.4g} (config: {c.initial:.4g})"
+        lines.append(f"  {c.scenario}/{c.condition}: {shown}")
+    return "\n".join(lines) + "\n\n"
 
 
 # -- the table ------------------------------------------------------------------------------------
@@ -586,6 +693,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         action="store_true",
         help="simulate the robot exactly as its model (not with the `mismatch` condition)",
     )
+    parser.add_argument(
+        "--no-calibration",
+        action="store_true",
+        help="run every method on the log's config as simulated, without first fitting "
+        "each robot's contact softness (softness_eps) by `physfuse calibrate`",
+    )
     args = parser.parse_args(argv)
     if not args.duration > 0 or args.jobs < 1 or args.timeout <= 0:
         parser.error("--duration and --timeout must be positive, --jobs at least 1")
@@ -602,7 +715,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"{len(args.methods)} methods, {args.duration:g} s logs{exact}, {args.jobs} job(s); "
         f"{work}"
     )
-    runs = run_suite(
+    calibrate = None if args.no_calibration else CALIBRATED_SETTING
+    runs, calibrations = run_suite(
         args.scenarios,
         args.conditions,
         args.methods,
@@ -613,10 +727,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         work,
         args.reuse_runs,
         mismatch=not args.no_mismatch,
+        calibrate=calibrate,
     )
     wall = time.perf_counter() - start
     checks = checklist(runs)
-    text = f"{table(runs)}\n\n{checklist_text(checks)}\n\nsuite wall time {wall:.0f} s\n"
+    text = (
+        f"{calibration_text(calibrations)}{table(runs)}\n\n{checklist_text(checks)}\n\n"
+        f"suite wall time {wall:.0f} s\n"
+    )
     print("\n" + text, end="")
     report = {
         "settings": {
@@ -626,6 +744,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "duration_s": args.duration,
             "seed": args.seed,
             "model_mismatch": not args.no_mismatch,
+            "calibrated": calibrate,
             "jobs": args.jobs,
             "timeout_s": args.timeout,
             "work": str(work),
@@ -633,6 +752,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "python": platform.python_version(),
         },
         "wall_s": wall,
+        "calibrations": [asdict(c) for c in calibrations],
         "runs": [asdict(r) for r in runs],
         "targets": [asdict(c) for c in checks],
         "target_counts": {s: sum(c.status == s for c in checks) for s in ("PASS", "MISS", "N/A")},

@@ -9,7 +9,10 @@ per window, so the profile does not switch between starts).
 
 Search: a geometric grid around the config's value (×1.15 steps) or over a given range; then
 the vertex of the parabola, in log(value), through the grid's lowest point and its two
-neighbours. The value kept is the evaluated one with the lowest mocap cost.
+neighbours. The value kept is the evaluated one with the lowest mocap cost; its σ is where
+that parabola rises by ½ (the cost is ½ Σ r² of whitened residuals). Where the mocap cost
+varies by less than ½ over the whole grid the log does not identify the setting (no floor
+contact, say) and the config's value stays.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from estimator.run import estimate
 CALIBRATED = ("softness_eps", "softness_kappa")
 GRID_RATIO = 1.15  # between neighbouring grid values
 GRID_POINTS = 7
+IDENTIFIED_COST = 0.5  # Δ(½ Σ r²) of one σ in one parameter
 
 
 @dataclass
@@ -51,6 +55,10 @@ class Calibration:
     best: float
     points: list[Point]  # in evaluation order: the grid, then the parabola's vertex
     at_edge: bool  # the grid's lowest point is an end of it: the minimum may lie beyond
+    identified: bool = True  # False: the mocap cost varies < IDENTIFIED_COST; best = initial
+    # σ of log(best): where the parabola rises IDENTIFIED_COST, the 1σ of a cost that is a
+    # negative log-likelihood (½ Σ r², Huber's kernel aside); None without a parabola
+    sigma_log: float | None = None
 
     def point(self, value: float) -> Point:
         return next(p for p in self.points if p.value == value)
@@ -117,26 +125,29 @@ def calibrate(
         return point
 
     on_grid = [evaluate(v) for v in sorted(values)]
-    i = min(range(len(on_grid)), key=lambda k: on_grid[k].mocap_cost)
+    costs = [p.mocap_cost for p in on_grid]
+    if max(costs) - min(costs) < IDENTIFIED_COST:  # the mocap does not see the setting
+        return Calibration(setting, initial, initial, points, at_edge=False, identified=False)
+    i = int(np.argmin(costs))
     at_edge = i in (0, len(on_grid) - 1)
+    sigma_log = None
     if not at_edge:
-        vertex = parabola_vertex(
-            [math.log(p.value) for p in on_grid[i - 1 : i + 2]],
-            [p.mocap_cost for p in on_grid[i - 1 : i + 2]],
-        )
-        if vertex is not None:
+        fit = parabola([math.log(p.value) for p in on_grid[i - 1 : i + 2]], costs[i - 1 : i + 2])
+        if fit is not None:
+            vertex, curvature = fit
+            sigma_log = math.sqrt(IDENTIFIED_COST / curvature)
             evaluate(math.exp(vertex))
     best = min(points, key=lambda p: p.mocap_cost)
-    return Calibration(setting, initial, best.value, points, at_edge)
+    return Calibration(setting, initial, best.value, points, at_edge, sigma_log=sigma_log)
 
 
-def parabola_vertex(x: Sequence[float], y: Sequence[float]) -> float | None:
-    """The minimum of the parabola through three points (x ascending, the middle one lowest);
-    None where they do not curve upward."""
+def parabola(x: Sequence[float], y: Sequence[float]) -> tuple[float, float] | None:
+    """(vertex, a) of the parabola y = a x² + b x + c through three points (x ascending, the
+    middle one lowest), the vertex clipped to [x0, x2]; None where they do not curve upward."""
     a, b, _ = np.polyfit(x, y, 2)
     if a <= 0:
         return None
-    return float(np.clip(-b / (2 * a), x[0], x[2]))
+    return float(np.clip(-b / (2 * a), x[0], x[2])), float(a)
 
 
 def config_with(source: Path, target: Path, setting: str, value: float) -> None:

@@ -23,6 +23,7 @@ import numpy as np
 from estimator.calibrate import (
     CALIBRATED,
     GRID_POINTS,
+    IDENTIFIED_COST,
     Calibration,
     Point,
     calibrate,
@@ -111,8 +112,16 @@ def _print(result: Calibration) -> None:
     initial = min(result.points, key=lambda p: abs(p.value - result.initial))
     print(f"\n{'value':>10} {'mocap cost':>12} {'whole cost':>12} {'time s':>7}")
     for p in sorted(result.points, key=lambda p: p.value):
-        mark = "  ← best" if p.value == result.best else ""
+        mark = "  ← best" if p.value == result.best and result.identified else ""
         print(f"{p.value:10.5g} {p.mocap_cost:12.1f} {p.cost:12.1f} {p.wall_time_s:7.1f}{mark}")
+    if not result.identified:
+        costs = [p.mocap_cost for p in result.points]
+        print(
+            f"\nnot identified: the mocap cost varies by {max(costs) - min(costs):.3g} over the "
+            f"grid (< {IDENTIFIED_COST}): this log does not show {result.setting}; keeping the "
+            f"config's {result.initial:.4g}"
+        )
+        return
     best = result.point(result.best)
     if math.isclose(initial.value, result.initial):
         against = f"the config's {result.initial:.4g}: {initial.mocap_cost:.1f}"
@@ -121,6 +130,9 @@ def _print(result: Calibration) -> None:
         against += f"{initial.mocap_cost:.1f}"
     print(f"\nbest: {result.setting} = {result.best:.4g}, mocap cost {best.mocap_cost:.1f} "
           f"({against})")  # fmt: skip
+    if result.sigma_log is not None:
+        print(f"σ: ×/÷ {math.exp(result.sigma_log):.3f} (where the mocap cost rises by "
+              f"{IDENTIFIED_COST} on the parabola)")  # fmt: skip
     if result.at_edge:
         print(
             "warning: the lowest mocap cost is at an end of the grid; the minimum may lie "
@@ -136,13 +148,21 @@ def plot(result: Calibration, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import ScalarFormatter
 
     points = sorted(result.points, key=lambda p: p.value)
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot([p.value for p in points], [p.mocap_cost for p in points], "o-", color="C0")
     ax.axvline(result.initial, color="0.6", linestyle="--", label=f"config {result.initial:.4g}")
     ax.axvline(result.best, color="C3", label=f"best {result.best:.4g}")
+    if result.sigma_log is not None:
+        spread = math.exp(result.sigma_log)
+        ax.axvspan(result.best / spread, result.best * spread, color="C3", alpha=0.15, label="±σ")
+    if not result.identified:
+        ax.set_title(f"not identified: {result.setting} stays at the config's")
     ax.set_xscale("log")
+    ax.xaxis.set_major_formatter(ScalarFormatter())
+    ax.xaxis.set_minor_formatter(ScalarFormatter())
     ax.set_xlabel(result.setting)
     ax.set_ylabel("mocap cost of the estimate")
     ax.legend()

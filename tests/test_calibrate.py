@@ -9,9 +9,10 @@ import pytest
 import tomlkit
 from mcap.reader import make_reader
 
-from estimator.calibrate import default_grid, parabola_vertex
+from estimator.calibrate import calibrate, default_grid, parabola
 from estimator.cli import main
 from estimator.config import load_config
+from estimator.logs import read_log
 from estimator.problem import Settings
 
 
@@ -46,7 +47,9 @@ def test_calibrate_finds_the_robots_softness_and_writes_a_config_that_uses_it(
     costs = {p["value"]: p["mocap_cost"] for p in report["points"]}
     assert len(costs) == 8 and costs[best] == min(costs.values()) < costs[model_eps]
     assert f"best: softness_eps = {best:.4g}" in printed
-    assert not report["at_edge"]
+    assert not report["at_edge"] and report["identified"]
+    assert 0.01 < report["sigma_log"] < 0.1  # a few percent
+    assert abs(np.log(best / true_eps)) < 2 * report["sigma_log"]
     # the written config: the original's comments and streams, the fitted ε in [estimator]
     text = calibrated.read_text()
     assert text.startswith(config.read_text().splitlines()[0])
@@ -61,9 +64,23 @@ def test_the_grid_and_the_parabola():
     assert len(grid) == 7 and grid[3] == 0.05
     np.testing.assert_allclose(grid[1:] / grid[:-1], 1.15)
     assert default_grid(0.02, 0.02)[0] == 0.02  # κ ≥ 2h: the grid starts at the floor
-    assert parabola_vertex([0.0, 1.0, 2.0], [1.0, 0.0, 1.0]) == pytest.approx(1.0)
-    assert parabola_vertex([0.0, 1.0, 2.0], [4.0, 1.0, 0.0]) == pytest.approx(2.0)  # clipped
-    assert parabola_vertex([0.0, 1.0, 2.0], [0.0, 1.0, 0.0]) is None  # no minimum
+    assert parabola([0.0, 1.0, 2.0], [1.0, 0.0, 1.0]) == pytest.approx((1.0, 1.0))
+    assert parabola([0.0, 1.0, 2.0], [4.0, 1.0, 0.0])[0] == pytest.approx(2.0)  # clipped
+    assert parabola([0.0, 1.0, 2.0], [0.0, 1.0, 0.0]) is None  # no minimum
+
+
+def test_a_log_that_does_not_show_the_softness_keeps_the_configs_value(tmp_path):
+    """The single-joint mechanism has no floor: its mocap cost does not move with ε."""
+    log, config_path = tmp_path / "sj.mcap", tmp_path / "sj.toml"
+    argv = ["simulate", "single_joint", "--condition", "nominal", "--seed", "0"]
+    assert (
+        main([*argv, "--duration", "1", "--out", str(log), "--config-out", str(config_path)]) == 0
+    )
+    config = load_config(config_path)
+    result = calibrate(config, read_log(log, config).measurements, Settings())
+    costs = [p.mocap_cost for p in result.points]
+    assert not result.identified and result.best == 0.05 and result.sigma_log is None
+    assert len(costs) == 7 and max(costs) - min(costs) < 0.5
 
 
 def test_bad_calibration_input_is_a_one_line_error(simulated, tmp_path, capsys):

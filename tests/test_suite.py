@@ -136,3 +136,34 @@ def test_a_baseline_without_the_method_option_is_reported_not_run(tmp_path):
     log.write_bytes(b"")
     suite.estimate_and_evaluate(run, log, tmp_path / "x.toml", tmp_path / "run", 60, False)
     assert run.error == "physfuse estimate has no --method option (only the physics smoother)"
+
+
+def test_each_robot_is_calibrated_on_its_own_log_and_every_method_takes_that_config(tmp_path):
+    """nominal, occlusion, outliers and no_commands simulate one robot, calibrated on the
+    nominal log (simulated for it if not in the suite); `mismatch` another, on its own."""
+    said: list[str] = []
+    runs, calibrations = suite.run_suite(
+        ["single_joint"], ["no_commands", "mismatch"], ["raw"], 0.3, 0, 2, 300, tmp_path,
+        say=said.append, calibrate="softness_eps",
+    )  # fmt: skip
+    assert [(c.condition, c.error) for c in calibrations] == [("nominal", None), ("mismatch", None)]
+    for c in calibrations:
+        assert c.initial == 0.05 and c.value is not None and Path(c.config).is_file()
+        assert f"softness_eps = {c.value:.4g}" in Path(c.config).read_text()
+    for run, c in zip(runs, calibrations, strict=True):  # the log's config, the robot's value
+        assert run.error is None
+        config = Path(run.folder).parent / "calibrated.toml"
+        assert f"{config} --out" in (Path(run.folder) / "transcript.txt").read_text()
+        text = config.read_text()
+        assert f"--condition {run.condition}" in text and f"softness_eps = {c.value:.4g}" in text
+    assert "calibrated (physfuse calibrate" in suite.calibration_text(calibrations)
+
+
+def test_a_failed_calibration_is_one_line_and_leaves_the_logs_config(tmp_path):
+    log = tmp_path / "empty.mcap"
+    log.write_bytes(b"")
+    result = suite.calibrate_robot(
+        "single_joint", "nominal", "softness_eps", log, tmp_path / "x.toml", tmp_path / "cal", 60
+    )
+    assert result.config == "" and result.error and "\n" not in result.error
+    assert "failed, the log's config used" in suite.calibration_text([result])
