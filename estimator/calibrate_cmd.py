@@ -34,7 +34,7 @@ from estimator.errors import PhysfuseError
 from estimator.evaluate import json_ready
 from estimator.logs import read_log
 from estimator.problem import Settings
-from estimator.run import _within
+from estimator.run import samples_within
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
     if args.duration is not None:
         t0 = min(int(m.t_ns[0]) for m in measurements.values() if len(m.t_ns))
         t1 = t0 + round(args.duration * 1e9)
-        measurements = {name: _within(m, t0, t1) for name, m in measurements.items()}
+        measurements = {name: samples_within(m, t0, t1) for name, m in measurements.items()}
     grid = None
     if args.range is not None:
         grid = [float(v) for v in np.geomspace(args.range[0], args.range[1], args.points)]

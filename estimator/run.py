@@ -109,7 +109,7 @@ def smooth(
     kept_starts: list[str] = []
     for i, s in enumerate(starts):
         e = min(T, s + W)
-        window = {name: _within(m, t_ns[s], t_ns[e - 1]) for name, m in measurements.items()}
+        window = {name: samples_within(m, t_ns[s], t_ns[e - 1]) for name, m in measurements.items()}
         problem = build_problem(config, window, settings, t_ns[s:e], compiled)
         if nb is None:
             nb = problem.nb
@@ -223,7 +223,7 @@ def finish(
 WINDOW_MARGIN_NS = 1_000_000_000  # samples kept around a window: interpolation, held commands
 
 
-def _within(m: Measurement, t0_ns: int, t1_ns: int) -> Measurement:
+def samples_within(m: Measurement, t0_ns: int, t1_ns: int) -> Measurement:
     """The samples of m within [t0, t1] ± WINDOW_MARGIN_NS (a window's problem needs no more)."""
     i0 = int(np.searchsorted(m.t_ns, t0_ns - WINDOW_MARGIN_NS, side="left"))
     i1 = int(np.searchsorted(m.t_ns, t1_ns + WINDOW_MARGIN_NS, side="right"))
