@@ -235,14 +235,16 @@ def estimate_and_evaluate(
 ) -> Run:
     """`physfuse estimate` then `physfuse evaluate` into `folder`; fills `run`.
 
-    reuse: keep the folder's summary.json and metrics.json when both are newer than the log.
+    reuse: keep the folder's summary.json and metrics.json when both are newer than the log
+    and the config.
     """
     folder.mkdir(parents=True, exist_ok=True)
     run.folder = str(folder)
     summary_path, metrics_path = folder / "summary.json", folder / "metrics.json"
     start = time.perf_counter()
+    inputs = max(log.stat().st_mtime, config.stat().st_mtime) if reuse else 0.0
     if reuse and all(
-        p.exists() and p.stat().st_mtime > log.stat().st_mtime for p in (summary_path, metrics_path)
+        p.exists() and p.stat().st_mtime > inputs for p in (summary_path, metrics_path)
     ):
         run.reused = True
     else:

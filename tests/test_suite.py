@@ -157,6 +157,11 @@ def test_each_robot_is_calibrated_on_its_own_log_and_every_method_takes_that_con
         text = config.read_text()
         assert f"--condition {run.condition}" in text and f"softness_eps = {c.value:.4g}" in text
     assert "calibrated (physfuse calibrate" in suite.calibration_text(calibrations)
+    again, _ = suite.run_suite(
+        ["single_joint"], ["no_commands", "mismatch"], ["raw"], 0.3, 0, 2, 300, tmp_path,
+        reuse=True, say=said.append, calibrate="softness_eps",
+    )  # fmt: skip
+    assert all(r.reused for r in again)  # the calibrated configs were left as they were
 
 
 def test_a_failed_calibration_is_one_line_and_leaves_the_logs_config(tmp_path):
