@@ -7,12 +7,13 @@ estimate's robust cost (its pose, tf, rigid-body and marker streams), profiled o
 setting: each point is a whole estimate with that value (`init = "measurements"`, one solve
 per window, so the profile does not switch between starts).
 
-Search: a geometric grid around the config's value (×1.15 steps) or over a given range; then
-the vertex of the parabola, in log(value), through the grid's lowest point and its two
-neighbours. The value kept is the evaluated one with the lowest mocap cost; its σ is where
-that parabola rises by ½ (the cost is ½ Σ r² of whitened residuals). Where the mocap cost
-varies by less than ½ over the whole grid the log does not identify the setting (no floor
-contact, say) and the config's value stays.
+Search: a geometric grid around the config's value (×1.15 steps) or over a given range,
+extended by the same steps past an end while the lowest point is there (up to as many values
+again; κ not below 2h); then the vertex of the parabola, in log(value), through the grid's
+lowest point and its two neighbours. The value kept is the evaluated one with the lowest
+mocap cost; its σ is where that parabola rises by ½ (the cost is ½ Σ r² of whitened
+residuals). Where the mocap cost varies by less than ½ over the whole grid the log does not
+identify the setting (no floor contact, say) and the config's value stays.
 """
 
 from __future__ import annotations
@@ -54,7 +55,7 @@ class Calibration:
     initial: float  # the config's value
     best: float
     points: list[Point]  # in evaluation order: the grid, then the parabola's vertex
-    at_edge: bool  # the grid's lowest point is an end of it: the minimum may lie beyond
+    at_edge: bool  # the lowest point is an end of the extended grid: the minimum may lie beyond
     identified: bool = True  # False: the mocap cost varies < IDENTIFIED_COST; best = initial
     # σ of log(best): where the parabola rises IDENTIFIED_COST, the 1σ of a cost that is a
     # negative log-likelihood (½ Σ r², Huber's kernel aside); None without a parabola
@@ -128,6 +129,15 @@ def calibrate(
     costs = [p.mocap_cost for p in on_grid]
     if max(costs) - min(costs) < IDENTIFIED_COST:  # the mocap does not see the setting
         return Calibration(setting, initial, initial, points, at_edge=False, identified=False)
+    for _ in range(GRID_POINTS):  # a minimum at an end: step past it, as far as the grid spans
+        i = int(np.argmin(costs))
+        if i == len(on_grid) - 1:
+            on_grid.append(evaluate(on_grid[-1].value ** 2 / on_grid[-2].value))
+        elif i == 0 and on_grid[0].value > lower:
+            on_grid.insert(0, evaluate(max(on_grid[0].value ** 2 / on_grid[1].value, lower)))
+        else:
+            break
+        costs = [p.mocap_cost for p in on_grid]
     i = int(np.argmin(costs))
     at_edge = i in (0, len(on_grid) - 1)
     sigma_log = None

@@ -135,8 +135,8 @@ def _print(result: Calibration) -> None:
               f"{IDENTIFIED_COST} on the parabola)")  # fmt: skip
     if result.at_edge:
         print(
-            "warning: the lowest mocap cost is at an end of the grid; the minimum may lie "
-            "beyond it (widen --range)",
+            "warning: the lowest mocap cost is at an end of the grid, extended as far as it "
+            "spans (or at κ's 2h floor); the minimum may lie beyond it (widen --range)",
             file=sys.stderr,
         )
     print(f"to use it: [estimator] {result.setting} = {result.best:.4g} in the config")

@@ -59,6 +59,17 @@ def test_calibrate_finds_the_robots_softness_and_writes_a_config_that_uses_it(
     assert settings.softness_eps == float(f"{best:.4g}")
 
 
+def test_a_grid_that_stops_short_of_the_minimum_is_extended_past_its_end(simulated, tmp_path):
+    log, config, true_eps = simulated
+    out = tmp_path / "out"
+    argv = ["calibrate", str(log), "--config", str(config), "--out", str(out), "--quiet"]
+    assert main([*argv, "--range", "0.03", "0.045", "--points", "3"]) == 0
+    report = json.loads((out / "calibration.json").read_text())
+    values = sorted(p["value"] for p in report["points"])
+    assert values[-1] > true_eps and not report["at_edge"]  # stepped ×1.22 past 0.045
+    assert abs(report["best"] - true_eps) < 0.05 * true_eps
+
+
 def test_the_grid_and_the_parabola():
     grid = default_grid(0.05, 0.0)
     assert len(grid) == 7 and grid[3] == 0.05
