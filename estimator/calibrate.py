@@ -73,10 +73,10 @@ def default_grid(initial: float, lower: float) -> np.ndarray:
     return grid
 
 
-def lower_bound(setting: str, config: Config) -> float:
-    """The smallest valid value: κ ≥ 2h (eq. 28 with the model's timestep), ε > 0."""
+def lower_bound(setting: str, config: Config, settings: Settings) -> float:
+    """The smallest valid value: κ ≥ 2h (eq. 28; h the knot step), ε > 0."""
     if setting == "softness_kappa":
-        return 2 * float(config.load_model().opt.timestep)
+        return 2 * (settings.h or float(config.load_model().opt.timestep))
     return 0.0
 
 
@@ -99,7 +99,7 @@ def calibrate(
             "which sees how deep the robot sits; the config has none"
         )
     initial = float(getattr(settings, setting))
-    lower = lower_bound(setting, config)
+    lower = lower_bound(setting, config, settings)
     values = list(default_grid(initial, lower) if grid is None else grid)
     if len(values) < 3 or min(values) < lower or min(values) <= 0:
         raise ConfigError(
