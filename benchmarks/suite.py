@@ -171,6 +171,7 @@ class Calibration:
     setting: str
     value: float | None = None
     initial: float | None = None
+    identified: bool = True  # False: the log does not show the setting; value = initial
     config: str = ""  # the calibrated config (empty: it failed)
     error: str | None = None
     process_s: float = 0.0
@@ -217,6 +218,7 @@ def calibrate_robot(
         try:
             fitted = json.loads(report.read_text())
             result.value, result.initial = float(fitted["best"]), float(fitted["initial"])
+            result.identified = bool(fitted["identified"])
         except (OSError, ValueError, KeyError, TypeError) as err:
             result.error = f"cannot read {report}: {err}"
         else:
@@ -382,6 +384,8 @@ def calibration_text(calibrations: Sequence[Calibration]) -> str:
     for c in calibrations:
         if c.error:
             shown = f"failed, the log's config used: {c.error}"
+        elif not c.identified:
+            shown = f"{c.setting} not identified by the mocap: the config's {c.initial:.4g} kept"
         else:
             shown = f"{c.setting} = {c.value:.4g} (config: {c.initial:.4g})"
         lines.append(f"  {c.scenario}/{c.condition}: {shown}")
