@@ -73,6 +73,11 @@ def run(args: argparse.Namespace) -> int:
         raise PhysfuseError(f"--duration {args.duration:g}: expected a positive number of s")
     config = load_config(args.config, extra_sections=("estimator", "simulate"))
     settings = Settings.from_config(config)
+    out: Path = args.out  # made before the minutes of estimates, so that none are lost to it
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise PhysfuseError(f"--out {out}: cannot create the directory ({err.strerror})") from err
     log = read_log(args.log, config)
     for warning in log.warnings:
         print(f"physfuse calibrate: warning: {warning}", file=sys.stderr)
@@ -92,12 +97,12 @@ def run(args: argparse.Namespace) -> int:
 
     print(f"calibrating {args.setting} on {args.log} (each value: one physics estimate)")
     result = calibrate(config, measurements, settings, args.setting, grid, progress)
-    out: Path = args.out
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise PhysfuseError(f"--out {out}: cannot create the directory ({err.strerror})") from err
-    report = {"log": str(args.log), "config": str(args.config), **asdict(result)}
+    report = {
+        "log": str(args.log),
+        "config": str(args.config),
+        "duration_s": args.duration,  # None: the whole log
+        **asdict(result),
+    }
     (out / "calibration.json").write_text(json.dumps(json_ready(report), indent=2) + "\n")
     plot(result, out / "calibration.png")
     _print(result)
