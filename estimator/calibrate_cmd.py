@@ -30,7 +30,7 @@ from estimator.calibrate import (
     config_with,
 )
 from estimator.config import load_config
-from estimator.errors import PhysfuseError
+from estimator.errors import PhysfuseError, output_dir
 from estimator.evaluate import json_ready
 from estimator.logs import read_log
 from estimator.problem import Settings
@@ -74,10 +74,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config, extra_sections=("estimator", "simulate"))
     settings = Settings.from_config(config)
     out: Path = args.out  # made before the minutes of estimates, so that none are lost to it
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise PhysfuseError(f"--out {out}: cannot create the directory ({err.strerror})") from err
+    output_dir(out)
     log = read_log(args.log, config)
     for warning in log.warnings:
         print(f"physfuse calibrate: warning: {warning}", file=sys.stderr)

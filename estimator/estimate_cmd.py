@@ -20,7 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from estimator.config import load_config
-from estimator.errors import LogError, PhysfuseError
+from estimator.errors import LogError, output_dir
 from estimator.estimate import Estimate
 from estimator.logs import read_log
 from estimator.problem import CHOICES, SETTINGS, Settings
@@ -90,10 +90,7 @@ def run(args: argparse.Namespace) -> int:
     bar.close()
     model = config.load_model()
     out: Path = args.out
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise PhysfuseError(f"--out {out}: cannot create the directory ({err.strerror})") from err
+    output_dir(out)
     imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
     write_estimate_mcap(out / "estimate.mcap", est, model, imu_sites)
     accuracy = _accuracy(args.log, model, log.measurements, est)

@@ -32,7 +32,7 @@ import numpy as np
 from tqdm import tqdm
 
 from estimator.config import MOCAP_KINDS, Config, load_config
-from estimator.errors import LogError, PhysfuseError
+from estimator.errors import LogError, PhysfuseError, output_dir
 from estimator.evaluate import (
     SUMMARY_KEYS,
     channel_errors,
@@ -98,10 +98,7 @@ def run(args: argparse.Namespace) -> int:
         report = against_truth(args.input, args.truth, config, args.estimate_prefix)
         out = args.out or args.input.parent
         _print_truth(report)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise PhysfuseError(f"--out {out}: cannot create the directory ({err.strerror})") from err
+    output_dir(out)
     (out / "metrics.json").write_text(json.dumps(json_ready(report), indent=2) + "\n")
     print(f"wrote {out / 'metrics.json'}")
     return 0
