@@ -16,7 +16,8 @@ softness, fitted first by `physfuse calibrate` on the robot's nominal log (the `
 condition's robot on its own log; --no-calibration: the log's config as simulated). A step
 that fails becomes a "failed: <its last error line>" entry instead of stopping the suite. It
 prints one table (scenario × condition × method rows, the metrics of `metrics.json`'s
-"summary" and wall time / log duration as columns), then the checklist of the targets:
+"summary" and wall time / log duration as columns), the same errors over the mocap
+occlusions for the runs that had any, then the checklist of the targets:
 
     1. on every scenario and condition the physics smoother's position, orientation,
        joint-angle and velocity errors are lower than every baseline's;
@@ -54,7 +55,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from estimator.calibrate import config_with  # noqa: E402
-from estimator.evaluate import TRAJECTORY_KEYS  # noqa: E402
+from estimator.evaluate import FORCE_KEYS, TRAJECTORY_KEYS  # noqa: E402
 from estimator.simulate import SCENARIOS  # noqa: E402
 from estimator.simulate.conditions import CONDITIONS  # noqa: E402
 
@@ -78,13 +79,16 @@ METRICS: Mapping[str, tuple[str, bool]] = {
     "contact_recall": ("c.rec", False),
     "imu_accel_bias_mps2": ("ba m/s²", True),
     "imu_gyro_bias_dps": ("bg °/s", True),
-    "occluded_position_mm": ("occ mm", True),
-    "occluded_orientation_deg": ("occ °", True),
-    "occluded_s": ("occ s", True),
     "wall_over_duration": ("wall/T", True),
 }
+# the same errors while mocap was occluded (`physfuse evaluate`: a body's pose and twist over
+# its own occlusions, joints and contact forces over any body's); their own table
+OCCLUDED_METRICS: Mapping[str, tuple[str, bool]] = {
+    f"occluded_{key}": METRICS[key] for key in (*TRAJECTORY_KEYS, *FORCE_KEYS)
+} | {"occluded_s": ("occ s", True)}
+ALL_METRICS = {**METRICS, **OCCLUDED_METRICS}
 BEATS_BASELINES = TRAJECTORY_KEYS
-OCCLUDED = ("occluded_position_mm", "occluded_orientation_deg")
+OCCLUSION_TARGET = ("occluded_position_mm", "occluded_orientation_deg")
 OCCLUSION_RATIO = 1.0 / 3.0  # physics ≤ this × kinematic during occlusions
 FORCE_PCT_WEIGHT = 10.0  # physics net contact force RMSE ≤ this % of m·g, nominal condition
 
@@ -276,7 +280,7 @@ def estimate_and_evaluate(
             run.error = f"cannot read {folder}/summary.json or metrics.json: {err}"
             return run
         run.wall_time_s, run.duration_s = summary.get("wall_time_s"), summary.get("duration_s")
-        run.metrics = {k: _number(metrics.get(k)) for k in METRICS if k in metrics}
+        run.metrics = {k: _number(metrics.get(k)) for k in ALL_METRICS if k in metrics}
         if run.wall_time_s is not None and run.duration_s:
             run.metrics["wall_over_duration"] = run.wall_time_s / run.duration_s
     return run
@@ -406,12 +410,12 @@ def _format(value: float | None) -> str:
     return f"{value:.3g}"
 
 
-def table(runs: Sequence[Run]) -> str:
+def table(runs: Sequence[Run], metrics: Mapping[str, tuple[str, bool]] = METRICS) -> str:
     """One row per run (scenario, condition, method); a column per metric with any value."""
-    columns = [k for k in METRICS if any(r.metrics.get(k) is not None for r in runs)]
+    columns = [k for k in metrics if any(r.metrics.get(k) is not None for r in runs)]
     width = 8
     head = f"{'scenario':15s} {'condition':12s} {'method':10s}"
-    lines = [head + "".join(f"{METRICS[k][0]:>{width}s}" for k in columns)]
+    lines = [head + "".join(f"{metrics[k][0]:>{width}s}" for k in columns)]
     lines.append("-" * len(lines[0]))
     previous: tuple[str, str] | None = None
     for r in runs:
@@ -425,6 +429,14 @@ def table(runs: Sequence[Run]) -> str:
             row += "".join(f"{_format(r.metrics.get(k)):>{width}s}" for k in columns)
         lines.append(row)
     return "\n".join(lines)
+
+
+def occlusion_table(runs: Sequence[Run]) -> str:
+    """`table` of the runs with occlusions, over the occlusions; empty if none had any."""
+    occluded = [r for r in runs if (r.metrics.get("occluded_s") or 0.0) > 0]
+    if not occluded:
+        return ""
+    return f"over the mocap occlusions:\n{table(occluded, OCCLUDED_METRICS)}\n\n"
 
 
 # -- the targets ----------------------------------------------------------------------------------
@@ -526,7 +538,7 @@ def check_occlusion(runs: Sequence[Run]) -> list[Check]:
         if key[1] != "occlusion" and (physics.error or kinematic.error):
             continue  # cannot tell whether it had occlusions; the occlusion condition does
         items = []
-        for metric in OCCLUDED:
+        for metric in OCCLUSION_TARGET:
             if physics.error or kinematic.error:
                 who = "physics" if physics.error else "kinematic"
                 items.append(_item(metric, "N/A", f"{who} failed"))
@@ -623,7 +635,7 @@ def plot(runs: Sequence[Run], out: Path) -> list[Path]:
     colors = {m: palette(i % 10) for i, m in enumerate(methods)}
     width = 0.8 / len(methods)
     paths = []
-    for metric, (label, lower_is_better) in METRICS.items():
+    for metric, (label, lower_is_better) in ALL_METRICS.items():
         values = [r.metrics.get(metric) for r in runs if not r.error]
         if not any(v is not None and v > 0 for v in values):
             continue
@@ -738,8 +750,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     wall = time.perf_counter() - start
     checks = checklist(runs)
     text = (
-        f"{calibration_text(calibrations)}{table(runs)}\n\n{checklist_text(checks)}\n\n"
-        f"suite wall time {wall:.0f} s\n"
+        f"{calibration_text(calibrations)}{table(runs)}\n\n{occlusion_table(runs)}"
+        f"{checklist_text(checks)}\n\nsuite wall time {wall:.0f} s\n"
     )
     print("\n" + text, end="")
     report = {

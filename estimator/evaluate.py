@@ -33,16 +33,18 @@ TRAJECTORY_KEYS = (  # the motion's errors: pose, joint angles, velocities
     "angular_velocity_dps",
     "joint_velocity_dps",
 )
+FORCE_KEYS = ("contact_force_N", "contact_force_pct_weight")
+# the same errors over the occlusions: a body's pose and twist over its own, the joints and
+# contact forces over any body's
+OCCLUDED_KEYS = tuple(f"occluded_{key}" for key in (*TRAJECTORY_KEYS, *FORCE_KEYS))
 SUMMARY_KEYS = (
     *TRAJECTORY_KEYS,
-    "contact_force_N",
-    "contact_force_pct_weight",
+    *FORCE_KEYS,
     "contact_precision",
     "contact_recall",
     "imu_accel_bias_mps2",
     "imu_gyro_bias_dps",
-    "occluded_position_mm",
-    "occluded_orientation_deg",
+    *OCCLUDED_KEYS,
     "occluded_s",
 )
 
@@ -166,8 +168,8 @@ def compare_states(
         occluded (None: occlusion metrics NaN).
     """
     pooled: dict[str, list[np.ndarray]] = {k: [] for k in ("pos", "rot", "lin", "ang")}
-    occluded: dict[str, list[np.ndarray]] = {"pos": [], "rot": []}
-    occluded_ns = 0
+    occluded: dict[str, list[np.ndarray]] = {k: [] for k in pooled}
+    spans: list[np.ndarray] = []  # every body's occlusions within its matched knots
     bodies = {}
     for body, t, e, g in _matched_by_name(est.odometry, truth.odometry, trim):
         errors = {
@@ -178,56 +180,65 @@ def compare_states(
         }
         for key, value in errors.items():
             pooled[key].append(value)
-        bodies[body] = {
-            "position_mm": 1e3 * rmse(errors["pos"]),
-            "orientation_deg": float(np.degrees(rmse(errors["rot"]))),
-            "linear_velocity_mps": rmse(errors["lin"]),
-            "angular_velocity_dps": float(np.degrees(rmse(errors["ang"]))),
-            "knots": len(t),
-        }
+        bodies[body] = _body_metrics(errors) | {"knots": len(t)}
         if occlusions is not None and body in occlusions:
             span = intersect_intervals(occlusions[body], np.array([[t[0], t[-1]]]))
             hidden = within(t, span)
-            occluded["pos"].append(errors["pos"][hidden])
-            occluded["rot"].append(errors["rot"][hidden])
-            occluded_ns += int(np.sum(span[:, 1] - span[:, 0]))
+            for key, value in errors.items():
+                occluded[key].append(value[hidden])
+            spans.append(span)
             bodies[body] |= {
                 "occluded_s": float(np.sum(span[:, 1] - span[:, 0]) / 1e9),
                 "occluded_intervals_s": ((span - t[0]) / 1e9).tolist(),
                 "occluded_knots": int(hidden.sum()),
-                "occluded_position_mm": 1e3 * rmse(errors["pos"][hidden]),
-                "occluded_orientation_deg": float(np.degrees(rmse(errors["rot"][hidden]))),
+            } | {
+                f"occluded_{k}": v
+                for k, v in _body_metrics({k: v[hidden] for k, v in errors.items()}).items()
             }
     joints, joint_errors = _joint_errors(est, truth, model, trim)
     weight = model_weight(model)
     contacts, contact_errors, flags = _contact_errors(est, truth, weight, trim)
     imu, bias_errors = _bias_errors(est, truth, trim)
+    hidden_ns = np.concatenate(spans) if spans else np.zeros((0, 2), dtype=np.int64)
 
     def pool(parts: list[np.ndarray]) -> np.ndarray:
         return np.concatenate(parts) if parts else np.zeros((0, 1))
 
-    force = rmse(pool(contact_errors))
+    def while_occluded(parts: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+        """The errors (t, e) of each part at the times some body's mocap was occluded."""
+        return pool([e[within(t, hidden_ns)] for t, e in parts])
+
+    force = rmse(pool([e for _, e in contact_errors]))
+    occluded_force = rmse(while_occluded(contact_errors))
     precision, recall = (
         precision_recall(pool(flags["est"]), pool(flags["truth"]))
         if flags["est"]
         else (float("nan"), float("nan"))
     )
+    totals = _body_metrics({k: pool(v) for k, v in pooled.items()})
+    hidden_totals = _body_metrics({k: pool(v) for k, v in occluded.items()})
     summary = {
-        "position_mm": 1e3 * rmse(pool(pooled["pos"])),
-        "orientation_deg": float(np.degrees(rmse(pool(pooled["rot"])))),
-        "joint_deg": float(np.degrees(rmse(pool(joint_errors["pos"])))),
-        "linear_velocity_mps": rmse(pool(pooled["lin"])),
-        "angular_velocity_dps": float(np.degrees(rmse(pool(pooled["ang"])))),
-        "joint_velocity_dps": float(np.degrees(rmse(pool(joint_errors["vel"])))),
+        "position_mm": totals["position_mm"],
+        "orientation_deg": totals["orientation_deg"],
+        "joint_deg": float(np.degrees(rmse(pool([e for _, e in joint_errors["pos"]])))),
+        "linear_velocity_mps": totals["linear_velocity_mps"],
+        "angular_velocity_dps": totals["angular_velocity_dps"],
+        "joint_velocity_dps": float(np.degrees(rmse(pool([e for _, e in joint_errors["vel"]])))),
         "contact_force_N": force,
         "contact_force_pct_weight": 100.0 * force / weight,
         "contact_precision": precision,
         "contact_recall": recall,
         "imu_accel_bias_mps2": rmse(pool(bias_errors["accel"])),
         "imu_gyro_bias_dps": float(np.degrees(rmse(pool(bias_errors["gyro"])))),
-        "occluded_position_mm": 1e3 * rmse(pool(occluded["pos"])),
-        "occluded_orientation_deg": float(np.degrees(rmse(pool(occluded["rot"])))),
-        "occluded_s": occluded_ns / 1e9 if occlusions is not None else float("nan"),
+        "occluded_position_mm": hidden_totals["position_mm"],
+        "occluded_orientation_deg": hidden_totals["orientation_deg"],
+        "occluded_joint_deg": float(np.degrees(rmse(while_occluded(joint_errors["pos"])))),
+        "occluded_linear_velocity_mps": hidden_totals["linear_velocity_mps"],
+        "occluded_angular_velocity_dps": hidden_totals["angular_velocity_dps"],
+        "occluded_joint_velocity_dps": float(np.degrees(rmse(while_occluded(joint_errors["vel"])))),
+        "occluded_contact_force_N": occluded_force,
+        "occluded_contact_force_pct_weight": 100.0 * occluded_force / weight,
+        "occluded_s": _total_s(spans) if occlusions is not None else float("nan"),
     }
     return {
         "summary": summary,
@@ -239,12 +250,29 @@ def compare_states(
     }
 
 
+def _body_metrics(errors: Mapping[str, np.ndarray]) -> dict[str, float]:
+    """Position (mm), orientation (deg), linear (m/s) and angular (deg/s) velocity RMSE of a
+    body's errors {"pos", "rot", "lin", "ang"} (m, rad, m/s, rad/s)."""
+    return {
+        "position_mm": 1e3 * rmse(errors["pos"]),
+        "orientation_deg": float(np.degrees(rmse(errors["rot"]))),
+        "linear_velocity_mps": rmse(errors["lin"]),
+        "angular_velocity_dps": float(np.degrees(rmse(errors["ang"]))),
+    }
+
+
+def _total_s(spans: list[np.ndarray]) -> float:
+    """The summed length [s] of interval lists (n, 2) in ns."""
+    return float(sum(np.sum(s[:, 1] - s[:, 0]) for s in spans) / 1e9)
+
+
 def _joint_errors(
     est: StateTopics, truth: StateTopics, model: mujoco.MjModel, trim: int
-) -> tuple[dict[str, Any], dict[str, list[np.ndarray]]]:
-    """Per hinge joint angle and velocity RMSE (deg, deg/s), and the pooled errors (rad)."""
+) -> tuple[dict[str, Any], dict[str, list[tuple[np.ndarray, np.ndarray]]]]:
+    """Per hinge joint angle and velocity RMSE (deg, deg/s), and each joint's errors (rad) with
+    their times (t_ns, e)."""
     details: dict[str, Any] = {}
-    errors: dict[str, list[np.ndarray]] = {"pos": [], "vel": []}
+    errors: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {"pos": [], "vel": []}
     if est.joints is None or truth.joints is None:
         return details, errors
     hinge = int(mujoco.mjtJoint.mjJNT_HINGE)
@@ -255,10 +283,10 @@ def _joint_errors(
         m = _matched(est.joint(name), truth.joint(name), trim)
         if m is None:
             continue
-        _, e, g = m
+        t, e, g = m
         d = e[:, :2] - g[:, :2]
-        errors["pos"].append(d[:, 0])
-        errors["vel"].append(d[:, 1])
+        errors["pos"].append((t, d[:, 0]))
+        errors["vel"].append((t, d[:, 1]))
         details[name] = {
             "angle_deg": float(np.degrees(rmse(d[:, 0]))),
             "velocity_dps": float(np.degrees(rmse(d[:, 1]))),
@@ -268,14 +296,15 @@ def _joint_errors(
 
 def _contact_errors(
     est: StateTopics, truth: StateTopics, weight: float, trim: int
-) -> tuple[dict[str, Any], list[np.ndarray], dict[str, list[np.ndarray]]]:
-    """Per body net contact force RMSE (N) and contact precision/recall; the force errors of
-    the bodies that touch something (in the truth or the estimate) and their in-contact flags."""
+) -> tuple[dict[str, Any], list[tuple[np.ndarray, np.ndarray]], dict[str, list[np.ndarray]]]:
+    """Per body net contact force RMSE (N) and contact precision/recall; the force errors (with
+    their times: t_ns, e) of the bodies that touch something (in the truth or the estimate) and
+    their in-contact flags."""
     threshold = CONTACT_WEIGHT_FRACTION * weight
     details: dict[str, Any] = {}
-    errors: list[np.ndarray] = []
+    errors: list[tuple[np.ndarray, np.ndarray]] = []
     flags: dict[str, list[np.ndarray]] = {"est": [], "truth": []}
-    for body, _, e, g in _matched_by_name(est.contact_wrench, truth.contact_wrench, trim):
+    for body, t, e, g in _matched_by_name(est.contact_wrench, truth.contact_wrench, trim):
         touching_est, touching_truth = (
             in_contact(e[:, :3], threshold),
             in_contact(g[:, :3], threshold),
@@ -283,7 +312,7 @@ def _contact_errors(
         if not (touching_est.any() or touching_truth.any()):
             continue
         precision, recall = precision_recall(touching_est, touching_truth)
-        errors.append(e[:, :3] - g[:, :3])
+        errors.append((t, e[:, :3] - g[:, :3]))
         flags["est"].append(touching_est)
         flags["truth"].append(touching_truth)
         details[body] = {

@@ -272,10 +272,10 @@ def states_from_qpos(model: mujoco.MjModel, t_ns: np.ndarray, qpos: np.ndarray) 
 def _print_truth(report: dict[str, Any]) -> None:
     raw = report["raw_summary"] or {}
     print(f"{report['estimate']} against the ground truth of {report['truth']} (RMSE):")
-    print(f"  {'metric':28s} {'estimate':>10s} {'raw':>10s}")
+    print(f"  {'metric':34s} {'estimate':>10s} {'raw':>10s}")
     for key in SUMMARY_KEYS:
         value, raw_value = report["summary"][key], raw.get(key, float("nan"))
-        print(f"  {key:28s} {value:10.4g} {raw_value:10.4g}")
+        print(f"  {key:34s} {value:10.4g} {raw_value:10.4g}")
     for body, d in report["details"]["contacts"].items():
         print(
             f"  contact {body:20s} force {d['force_N']:8.3g} N, precision "

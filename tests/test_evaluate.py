@@ -140,6 +140,13 @@ def test_compare_states_recovers_known_offsets_against_a_sparser_truth():
     assert s["occluded_s"] == pytest.approx(0.2)
     assert s["occluded_position_mm"] == pytest.approx(1.0)
     assert metrics["bodies"]["torso"]["occluded_knots"] == 19
+    # every error again over the occlusion: the joints and forces over any body's occlusion
+    assert s["occluded_orientation_deg"] == pytest.approx(0.5)
+    assert s["occluded_joint_deg"] == pytest.approx(0.2)
+    assert s["occluded_linear_velocity_mps"] == 0.0 and s["occluded_joint_velocity_dps"] == 0.0
+    assert s["occluded_contact_force_N"] == pytest.approx(5.0)  # mid-stance: (3, 0, 4) N off
+    assert s["occluded_contact_force_pct_weight"] == pytest.approx(500.0 / weight)
+    assert metrics["bodies"]["torso"]["occluded_angular_velocity_dps"] == 0.0
 
 
 # -- end to end -----------------------------------------------------------------------------------

@@ -96,6 +96,21 @@ def test_table_has_a_row_per_run_failures_in_one_line_and_no_empty_columns():
     assert ukf.endswith("failed: physfuse estimate: error: boom")
 
 
+def test_occlusion_table_lists_the_runs_with_occlusions_over_them():
+    runs = [
+        _run("physics", "nominal", position_mm=0.1),
+        _run("physics", "occlusion", position_mm=0.1, occluded_position_mm=0.3, occluded_s=1.2),
+        _run("kinematic", "occlusion", occluded_position_mm=0.9, occluded_s=1.2),
+    ]
+    text = suite.occlusion_table(runs)
+    title, head, _, physics, kinematic = text.strip().splitlines()
+    assert title == "over the mocap occlusions:"
+    assert head.split()[3:] == ["pos", "mm", "occ", "s"]  # only the occluded columns
+    assert physics.split() == ["humanoid_push", "occlusion", "physics", "0.3", "1.2"]
+    assert kinematic.split()[2:] == ["kinematic", "0.9", "1.2"]
+    assert suite.occlusion_table(runs[:1]) == ""  # no occlusions: no table
+
+
 def test_a_failing_step_becomes_one_line_and_a_log_is_simulated_once(tmp_path):
     error = suite.call(["simulate", "nope", "--out", str(tmp_path / "x.mcap")], 120, tmp_path / "t")
     assert error is not None and error.startswith("physfuse simulate: error: unknown scenario")
