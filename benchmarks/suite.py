@@ -31,7 +31,8 @@ miss then is the estimator's, not the model's. Its logs and runs are kept apart 
 (`-exact-model` in their names); the `mismatch` condition contradicts it.
 
 It writes OUT/suite.json (settings, every run with its metrics and errors, the checklist),
-OUT/suite.txt (the printed table and checklist) and one PNG per metric (OUT/<metric>.png:
+OUT/suite.txt (the printed tables and checklist), OUT/suite.md (the tables in Markdown, for
+the README) and one PNG per metric (OUT/<metric>.png:
 grouped bars, method × (scenario, condition), log scale).
 """
 
@@ -431,12 +432,43 @@ def table(runs: Sequence[Run], metrics: Mapping[str, tuple[str, bool]] = METRICS
     return "\n".join(lines)
 
 
+def markdown_table(runs: Sequence[Run], metrics: Mapping[str, tuple[str, bool]] = METRICS) -> str:
+    """`table` as a Markdown table (the physics smoother's rows in bold), for the README."""
+    columns = [k for k in metrics if any(r.metrics.get(k) is not None for r in runs)]
+    lines = [
+        "| scenario | condition | method | " + " | ".join(metrics[k][0] for k in columns) + " |",
+        "|---" * (3 + len(columns)) + "|",
+    ]
+    for r in runs:
+        method = f"**{r.method}**" if r.method == "physics" else r.method
+        cells = (
+            [f"failed: {r.error}"] + [""] * (len(columns) - 1)
+            if r.error
+            else [_format(r.metrics.get(k)) for k in columns]
+        )
+        lines.append(f"| {r.scenario} | {r.condition} | {method} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def occlusion_runs(runs: Sequence[Run]) -> list[Run]:
+    """The runs whose log had mocap occlusions."""
+    return [r for r in runs if (r.metrics.get("occluded_s") or 0.0) > 0]
+
+
 def occlusion_table(runs: Sequence[Run]) -> str:
     """`table` of the runs with occlusions, over the occlusions; empty if none had any."""
-    occluded = [r for r in runs if (r.metrics.get("occluded_s") or 0.0) > 0]
+    occluded = occlusion_runs(runs)
     if not occluded:
         return ""
     return f"over the mocap occlusions:\n{table(occluded, OCCLUDED_METRICS)}\n\n"
+
+
+def markdown(runs: Sequence[Run]) -> str:
+    """suite.md: both tables in Markdown (the README's copy)."""
+    text = f"{markdown_table(runs)}\n"
+    if occluded := occlusion_runs(runs):
+        text += f"\nOver the mocap occlusions:\n\n{markdown_table(occluded, OCCLUDED_METRICS)}\n"
+    return text
 
 
 # -- the targets ----------------------------------------------------------------------------------
@@ -777,6 +809,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     }
     (args.out / "suite.json").write_text(json.dumps(report, indent=2, allow_nan=False) + "\n")
     (args.out / "suite.txt").write_text(text)
+    (args.out / "suite.md").write_text(markdown(runs))
     paths = plot(runs, args.out)
     print(f"wrote {args.out / 'suite.json'}, {args.out / 'suite.txt'} and {len(paths)} plots")
     return 0

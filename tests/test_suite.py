@@ -111,6 +111,22 @@ def test_occlusion_table_lists_the_runs_with_occlusions_over_them():
     assert suite.occlusion_table(runs[:1]) == ""  # no occlusions: no table
 
 
+def test_markdown_tables_have_the_same_cells_and_physics_in_bold():
+    runs = [
+        _run("physics", "occlusion", position_mm=0.1, occluded_position_mm=0.3, occluded_s=1.2),
+        _run("ukf", "occlusion", error="physfuse estimate: error: boom"),
+    ]
+    main, title, occluded = suite.markdown(runs).strip().split("\n\n")
+    head, rule, physics, ukf = main.splitlines()
+    assert head.startswith("| scenario | condition | method | pos mm |")
+    assert rule.count("|---") == head.count("|") - 1
+    assert physics.startswith("| humanoid_push | occlusion | **physics** | 0.1 |")
+    assert "| failed: physfuse estimate: error: boom |" in ukf
+    assert ukf.count("|") == head.count("|")
+    assert title == "Over the mocap occlusions:"
+    assert occluded.splitlines()[2].endswith("| 0.3 | 1.2 |")
+
+
 def test_a_failing_step_becomes_one_line_and_a_log_is_simulated_once(tmp_path):
     error = suite.call(["simulate", "nope", "--out", str(tmp_path / "x.mcap")], 120, tmp_path / "t")
     assert error is not None and error.startswith("physfuse simulate: error: unknown scenario")
