@@ -411,9 +411,14 @@ def _format(value: float | None) -> str:
     return f"{value:.3g}"
 
 
+def _columns(runs: Sequence[Run], metrics: Mapping[str, tuple[str, bool]]) -> list[str]:
+    """The metrics some run has a value of."""
+    return [k for k in metrics if any(r.metrics.get(k) is not None for r in runs)]
+
+
 def table(runs: Sequence[Run], metrics: Mapping[str, tuple[str, bool]] = METRICS) -> str:
     """One row per run (scenario, condition, method); a column per metric with any value."""
-    columns = [k for k in metrics if any(r.metrics.get(k) is not None for r in runs)]
+    columns = _columns(runs, metrics)
     width = 8
     head = f"{'scenario':15s} {'condition':12s} {'method':10s}"
     lines = [head + "".join(f"{metrics[k][0]:>{width}s}" for k in columns)]
@@ -434,7 +439,7 @@ def table(runs: Sequence[Run], metrics: Mapping[str, tuple[str, bool]] = METRICS
 
 def markdown_table(runs: Sequence[Run], metrics: Mapping[str, tuple[str, bool]] = METRICS) -> str:
     """`table` as a Markdown table (the physics smoother's rows in bold), for the README."""
-    columns = [k for k in metrics if any(r.metrics.get(k) is not None for r in runs)]
+    columns = _columns(runs, metrics)
     lines = [
         "| scenario | condition | method | " + " | ".join(metrics[k][0] for k in columns) + " |",
         "|---" * (3 + len(columns)) + "|",

@@ -208,36 +208,43 @@ def compare_states(
         """The errors (t, e) of each part at the times some body's mocap was occluded."""
         return pool([e[within(t, hidden_ns)] for t, e in parts])
 
-    force = rmse(pool([e for _, e in contact_errors]))
-    occluded_force = rmse(while_occluded(contact_errors))
     precision, recall = (
         precision_recall(pool(flags["est"]), pool(flags["truth"]))
         if flags["est"]
         else (float("nan"), float("nan"))
     )
-    totals = _body_metrics({k: pool(v) for k, v in pooled.items()})
-    hidden_totals = _body_metrics({k: pool(v) for k, v in occluded.items()})
+
+    def errors_of(
+        body_parts: Mapping[str, list[np.ndarray]],
+        joint_part: Mapping[str, np.ndarray],
+        force_part: np.ndarray,
+    ) -> dict[str, float]:
+        """TRAJECTORY_KEYS and FORCE_KEYS of pooled errors."""
+        force = rmse(force_part)
+        return _body_metrics({k: pool(v) for k, v in body_parts.items()}) | {
+            "joint_deg": float(np.degrees(rmse(joint_part["pos"]))),
+            "joint_velocity_dps": float(np.degrees(rmse(joint_part["vel"]))),
+            "contact_force_N": force,
+            "contact_force_pct_weight": 100.0 * force / weight,
+        }
+
+    all_errors = errors_of(
+        pooled,
+        {k: pool([e for _, e in parts]) for k, parts in joint_errors.items()},
+        pool([e for _, e in contact_errors]),
+    )
+    occluded_errors = errors_of(
+        occluded,
+        {k: while_occluded(parts) for k, parts in joint_errors.items()},
+        while_occluded(contact_errors),
+    )
     summary = {
-        "position_mm": totals["position_mm"],
-        "orientation_deg": totals["orientation_deg"],
-        "joint_deg": float(np.degrees(rmse(pool([e for _, e in joint_errors["pos"]])))),
-        "linear_velocity_mps": totals["linear_velocity_mps"],
-        "angular_velocity_dps": totals["angular_velocity_dps"],
-        "joint_velocity_dps": float(np.degrees(rmse(pool([e for _, e in joint_errors["vel"]])))),
-        "contact_force_N": force,
-        "contact_force_pct_weight": 100.0 * force / weight,
+        **{k: all_errors[k] for k in (*TRAJECTORY_KEYS, *FORCE_KEYS)},
         "contact_precision": precision,
         "contact_recall": recall,
         "imu_accel_bias_mps2": rmse(pool(bias_errors["accel"])),
         "imu_gyro_bias_dps": float(np.degrees(rmse(pool(bias_errors["gyro"])))),
-        "occluded_position_mm": hidden_totals["position_mm"],
-        "occluded_orientation_deg": hidden_totals["orientation_deg"],
-        "occluded_joint_deg": float(np.degrees(rmse(while_occluded(joint_errors["pos"])))),
-        "occluded_linear_velocity_mps": hidden_totals["linear_velocity_mps"],
-        "occluded_angular_velocity_dps": hidden_totals["angular_velocity_dps"],
-        "occluded_joint_velocity_dps": float(np.degrees(rmse(while_occluded(joint_errors["vel"])))),
-        "occluded_contact_force_N": occluded_force,
-        "occluded_contact_force_pct_weight": 100.0 * occluded_force / weight,
+        **{f"occluded_{k}": occluded_errors[k] for k in (*TRAJECTORY_KEYS, *FORCE_KEYS)},
         "occluded_s": _total_s(spans) if occlusions is not None else float("nan"),
     }
     return {
