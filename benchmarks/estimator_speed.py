@@ -61,7 +61,7 @@ def bare_pass_seconds(
     def work(chunk: range, worker: KnotModel, jac: bool) -> None:
         outs = [o.copy() for o in out]
         for k in chunk:
-            worker.evaluate(qpos[k], v[k], a[k])
+            worker.evaluate(k, qpos[k], v[k], a[k])
             if jac:
                 worker.jacobians(qpos[k], v[k], a[k], *outs)
 

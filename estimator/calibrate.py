@@ -34,6 +34,8 @@ from estimator.errors import ConfigError, PhysfuseError
 from estimator.logs.measurements import Measurement
 from estimator.problem import Settings
 from estimator.run import estimate
+from physics.errors import UnsupportedModelError
+from physics.softness import Softness
 
 CALIBRATED = ("softness_eps", "softness_kappa")
 GRID_RATIO = 1.15  # between neighbouring grid values
@@ -98,7 +100,7 @@ def calibrate(
             f"{config.path}: calibration needs a mocap stream ({', '.join(MOCAP_KINDS)}), "
             "which sees how deep the robot sits; the config has none"
         )
-    initial = float(getattr(settings, setting))
+    initial = _current_value(config, settings, setting)
     lower = lower_bound(setting, config, settings)
     values = list(default_grid(initial, lower) if grid is None else grid)
     if len(values) < 3 or min(values) < lower or min(values) <= 0:
@@ -149,6 +151,21 @@ def calibrate(
             evaluate(math.exp(vertex))
     best = min(points, key=lambda p: p.mocap_cost)
     return Calibration(setting, initial, best.value, points, at_edge, sigma_log=sigma_log)
+
+
+def _current_value(config: Config, settings: Settings, setting: str) -> float:
+    """The setting's value, or the model's own where it is unset (one for the whole model)."""
+    value = getattr(settings, setting)
+    if value is not None:
+        return float(value)
+    try:
+        own = Softness.of_model(config.load_model())
+    except UnsupportedModelError as err:
+        raise ConfigError(
+            f"{config.model_path}: the model's own softness differs between elements ({err}); "
+            f"set estimator.{setting} in {config.path} to the value to calibrate around"
+        ) from None
+    return own.eps if setting == "softness_eps" else own.kappa
 
 
 def parabola(x: Sequence[float], y: Sequence[float]) -> tuple[float, float] | None:

@@ -427,7 +427,7 @@ class SensorPredictor:
         a = accelerations(v, h)
         knots = KnotModel(self.problem)
         rows = self.rows(stream)
-        s = np.array([knots.evaluate(qpos[k], v[k], a[k])[1][rows] for k in range(len(qpos))])
+        s = np.array([knots.evaluate(k, qpos[k], v[k], a[k])[2][rows] for k in range(len(qpos))])
         k = np.clip(np.searchsorted(self.t_ns, t_ns, side="right") - 1, 0, len(self.t_ns) - 2)
         alpha = ((t_ns - self.t_ns[k]) / (self.t_ns[k + 1] - self.t_ns[k]))[:, None]
         out = (1.0 - alpha) * s[k] + alpha * s[k + 1]

@@ -38,13 +38,14 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from estimator.actuation import check_commanded, commanded_force, moment_dense
 from estimator.config import Config, StreamConfig
 from estimator.errors import ConfigError
 from estimator.logs.align import resample
 from estimator.logs.measurements import Measurement
 from physics.dynamics import make_dynamics
 from physics.errors import UnsupportedModelError
-from physics.softness import Softness
+from physics.softness import Softness, override
 
 _OBJ = mujoco.mjtObj
 _SENS = mujoco.mjtSensor
@@ -104,10 +105,14 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
         "(0: no correction)",
     ),
     "softness_eps": (
-        0.05,
-        "ε of the contacts' and constraints' softness, R = ε·diag(A) (paper eq. 27)",
+        None,
+        "ε replacing every solimp of the model, R = ε·diag(A) (paper eq. 27); unset: the "
+        "model's own solimp",
     ),
-    "softness_kappa": (0.02, "κ, their error-reduction time constant in s (eq. 28; ≥ 2h)"),
+    "softness_kappa": (
+        None,
+        "κ in s replacing every solref of the model (eq. 28; ≥ 2h); unset: the model's own solref",
+    ),
     "bias_prior_accel": (0.5, "σ of the first accelerometer bias, m/s²"),
     "bias_prior_gyro": (0.05, "σ of the first gyro bias, rad/s"),
     "fd_eps": (1e-6, "finite-difference step of mjd_inverseFD"),
@@ -151,8 +156,9 @@ class Settings:
     model_error_walk: float = 1.0
     contact_forces: str = "balanced"
     contact_force_std: float = 1.0
-    softness_eps: float = 0.05  # Softness()'s, the simulator's nominal model
-    softness_kappa: float = 0.02
+    # the model's own contact softness unless set (an override of every element's)
+    softness_eps: float | None = None
+    softness_kappa: float | None = None
     bias_prior_accel: float = 0.5
     bias_prior_gyro: float = 0.05
     fd_eps: float = 1e-6
@@ -164,10 +170,9 @@ class Settings:
             return self.jerk_kernel
         return "cauchy" if self.method == "physics" else "none"
 
-    @property
-    def softness(self) -> Softness:
-        """The model's softness (paper Section V), as these settings give it."""
-        return Softness(eps=self.softness_eps, kappa=self.softness_kappa)
+    def apply_softness(self, model: mujoco.MjModel) -> None:
+        """Override the model's own softness where softness_eps / softness_kappa are set."""
+        override(model, eps=self.softness_eps, kappa=self.softness_kappa)
 
     @classmethod
     def from_config(cls, config: Config) -> Settings:
@@ -195,8 +200,17 @@ class Settings:
                 )
             values[key] = int(value) if isinstance(default, int) else value
         settings = cls(**values)
-        try:
-            settings.softness  # noqa: B018 (validates ε and κ)
+        try:  # validates ε and κ
+            Softness(
+                **{
+                    name: value
+                    for name, value in (
+                        ("eps", settings.softness_eps),
+                        ("kappa", settings.softness_kappa),
+                    )
+                    if value is not None
+                }
+            )
         except UnsupportedModelError as err:
             raise ConfigError(f"{config.path}: estimator.{_setting_named(err)}") from None
         return settings
@@ -270,7 +284,9 @@ class Problem:
     h: float
     t_ns: np.ndarray  # (T,) knot times
     blocks: list[SensorBlock]
-    qfrc_known: np.ndarray  # (T, nv), NaN where no force is known
+    # (T, nv) the known force that does not depend on the state (0 on unactuated dofs, logged
+    # efforts; 0 on dofs the commands drive, whose force `u_known` adds), NaN where none is known
+    qfrc_known: np.ndarray
     known_sigma: np.ndarray  # (T, nv) σ of u − qfrc_known whatever the method, inf where unknown
     physics_sigma: np.ndarray  # (T, nv) the physics factors' σ, inf where the dof is left free
     settings: Settings
@@ -282,6 +298,20 @@ class Problem:
     bias_of: dict[str, slice] = field(default_factory=dict)
     # unactuated dofs with a model-error offset, its bias dims bias_of[MODEL_ERROR]
     error_dofs: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    # (T, nu) the logged commands held at the knots, NaN where an actuator has none
+    ctrl: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+
+    def u_known(
+        self, data: mujoco.MjData, k: int, jacobians: bool = False
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """u_known (nv,) at knot k and data's state (positions and velocities computed):
+        qfrc_known[k] plus the force of the commands through the model's actuators
+        (`estimator.actuation`), NaN where unknown; with jacobians, its ∂/∂q and ∂/∂v (nv, nv).
+        """
+        if not np.isfinite(self.ctrl[k]).any():
+            return self.qfrc_known[k], None, None
+        qfrc, dq, dv = commanded_force(self.model, data, self.ctrl[k], jacobians)
+        return self.qfrc_known[k] + qfrc, dq, dv
 
     @property
     def T(self) -> int:
@@ -373,7 +403,7 @@ def build_problem(
     if abs(h - model.opt.timestep) > 1e-12:
         model.opt.timestep = h
     try:
-        settings.softness.apply(model)
+        settings.apply_softness(model)
     except UnsupportedModelError as err:  # κ below 2h
         raise ConfigError(f"{config.path}: estimator.{_setting_named(err)}") from None
     if t_ns is None:
@@ -476,7 +506,9 @@ def build_problem(
             )
             bias_of[name] = slice(nb, nb + 6)
             nb += 6
-    qfrc_known, known_sigma, actuated = _known_forces(model, config, measurements, t_ns, settings)
+    qfrc_known, known_sigma, actuated, ctrl = _known_forces(
+        model, config, measurements, t_ns, settings
+    )
     # the kinematic method: no physics factor anywhere
     sigma = np.full_like(known_sigma, np.inf) if settings.method == "kinematic" else known_sigma
     error_dofs = np.zeros(0, int)
@@ -503,6 +535,7 @@ def build_problem(
         bias_prior,
         bias_of,
         error_dofs,
+        ctrl,
     )
 
 
@@ -648,38 +681,37 @@ def _known_forces(
     measurements: Mapping[str, Measurement],
     t_ns: np.ndarray,
     settings: Settings,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """u_known (T, nv), the physics factor's σ (T, nv) and which dofs an actuator drives (nv,).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """qfrc_known (T, nv), the physics factor's σ (T, nv), which dofs an actuator drives (nv,)
+    and the commands held at the knots, ctrl (T, nu) (NaN: none).
 
-    Unactuated dofs: u_known = 0 with σ_unactuated. Actuated dofs: the force the logged
-    commands produce through the actuators (qfrc_actuator; for motors independent of the
-    state), or the measured joint efforts, with σ_actuated; left free (σ = ∞) when neither
-    is logged.
+    Unactuated dofs: u_known = 0 with σ_unactuated. Actuated dofs: the force of the logged
+    commands through the actuators at each knot's state (`Problem.u_known`; qfrc_known 0
+    there), or the measured joint efforts, with σ_actuated; left free (σ = ∞) when neither
+    is logged. Commands are held from sample to sample (zero-order hold, as a controller
+    holds them), their stream's time offset applied by the reader.
     """
     T, nv = len(t_ns), model.nv
     d = mujoco.MjData(model)
-    moment = _actuator_moment(model, d)  # (nu, nv)
+    mujoco.mj_forward(model, d)
+    moment = moment_dense(model, d)  # (nu, nv)
     actuated = np.any(moment != 0, axis=0)
     known = np.full((T, nv), np.nan)
     known[:, ~actuated] = 0.0
     sigma = np.full((T, nv), np.inf)
     sigma[:, ~actuated] = settings.physics_std_unactuated
-    commands = [m for m in measurements.values() if m.kind == "command" and len(m)]
+    ctrl = np.full((T, model.nu), np.nan)
+    commands = [(n, m) for n, m in measurements.items() if m.kind == "command" and len(m)]
+    for name, m in commands:
+        held = _hold(m, t_ns)  # (T, E)
+        ids = [mujoco.mj_name2id(model, _OBJ.mjOBJ_ACTUATOR, a) for a in m.elements]
+        check_commanded(model, ids, f"{config.path}: streams.{name}")
+        for e, a in enumerate(ids):
+            ctrl[:, a] = held[:, e]
     if commands:
-        ctrl = np.zeros((T, model.nu))
-        have = np.zeros((T, model.nu), dtype=bool)
-        for m in commands:
-            held = _hold(m, t_ns)  # (T, E)
-            for e, actuator in enumerate(m.elements):
-                a = mujoco.mj_name2id(model, _OBJ.mjOBJ_ACTUATOR, actuator)
-                ctrl[:, a] = np.nan_to_num(held[:, e])
-                have[:, a] = np.isfinite(held[:, e])
-        mujoco.mj_forward(model, d)
         for k in range(T):
-            d.ctrl[:] = ctrl[k]
-            mujoco.mj_fwdActuation(model, d)
-            driven = np.any(moment[have[k]] != 0, axis=0)
-            known[k, driven] = d.qfrc_actuator[driven]
+            driven = np.any(moment[np.isfinite(ctrl[k])] != 0, axis=0)
+            known[k, driven] = 0.0
             sigma[k, driven] = settings.physics_std_actuated
     else:
         for m in measurements.values():
@@ -692,7 +724,20 @@ def _known_forces(
                 ok = np.isfinite(effort[:, e])
                 known[ok, dof] = effort[ok, e]
                 sigma[ok, dof] = settings.physics_std_actuated
-    return known, sigma, actuated
+    return known, sigma, actuated, ctrl
+
+
+def u_known_along(problem: Problem, qpos: np.ndarray) -> np.ndarray:
+    """(T, nv) u_known at every knot of a trajectory qpos (T, nq), v by finite differences."""
+    model, data = problem.model, mujoco.MjData(problem.model)
+    v = velocities(model, qpos, problem.h)
+    out = np.empty((problem.T, model.nv))
+    for k in range(problem.T):
+        data.qpos[:], data.qvel[:] = qpos[k], v[k]
+        mujoco.mj_fwdPosition(model, data)
+        mujoco.mj_fwdVelocity(model, data)
+        out[k] = problem.u_known(data, k)[0]
+    return out
 
 
 def _hold(m: Measurement, t_ns: np.ndarray, component: int = 0) -> np.ndarray:
@@ -702,15 +747,6 @@ def _hold(m: Measurement, t_ns: np.ndarray, component: int = 0) -> np.ndarray:
     ok = index >= 0
     out[ok] = m.values[index[ok], :, component]
     return out
-
-
-def _actuator_moment(model: mujoco.MjModel, d: mujoco.MjData) -> np.ndarray:
-    mujoco.mj_forward(model, d)
-    moment = np.zeros((model.nu, model.nv))
-    mujoco.mju_sparse2dense(
-        moment, d.actuator_moment, d.moment_rownnz, d.moment_rowadr, d.moment_colind
-    )
-    return moment
 
 
 # ---------------------------------------------------------------------------------------------
@@ -796,28 +832,38 @@ class KnotModel:
         self.data = mujoco.MjData(self.problem.model)
         self.model = self.problem.model
         self.rotations = _RotationDofs.of(self.model)
+        self.known_dq: np.ndarray | None = None
+        self.known_dv: np.ndarray | None = None
         self.reference = (
-            make_dynamics(self.model, "reference", self.problem.settings.softness)
+            make_dynamics(self.model, "reference")  # the problem's model, softness applied
             if self.path == "reference"
             else None
         )
 
-    def evaluate(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> tuple[np.ndarray, ...]:
-        """u (nv,) and sensordata (ns,) at one knot."""
+    def evaluate(
+        self, k: int, q: np.ndarray, v: np.ndarray, a: np.ndarray, jacobians: bool = False
+    ) -> tuple[np.ndarray, ...]:
+        """u (nv,), u_known (nv,) and sensordata (ns,) at knot k's state; with jacobians, also
+        u_known's derivatives, which `jacobians` (at the same state, next) takes out of u's."""
         m, d = self.model, self.data
         d.qpos[:], d.qvel[:], d.qacc[:] = q, v, a
         mujoco.mj_inverse(m, d)
-        u = d.qfrc_inverse.copy()
+        u, s = d.qfrc_inverse.copy(), d.sensordata.copy()
+        known, self.known_dq, self.known_dv = self.problem.u_known(d, k, jacobians)
         if self.reference is not None:
             u = self.reference.inverse(q, v, a).qfrc_inverse
-        return u, d.sensordata.copy()
+        return u, known, s
 
     def jacobians(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, *out: np.ndarray) -> None:
         """mjd_inverseFD at one knot into out = (DfDq, DfDv, DfDa) (nv, nv) and (DsDq, DsDv,
-        DsDa) (nv, ns), in MuJoCo's transposed layout (row i: the derivative by x_i)."""
+        DsDa) (nv, ns), in MuJoCo's transposed layout (row i: the derivative by x_i); DfDq and
+        DfDv are those of u − u_known (u_known's from the `evaluate` just before)."""
         m, d = self.model, self.data
         d.qpos[:], d.qvel[:], d.qacc[:] = q, v, a
         mujoco.mjd_inverseFD(m, d, self.problem.settings.fd_eps, False, *out, None)
+        if self.known_dq is not None and self.known_dv is not None:
+            out[0][...] -= self.known_dq.T
+            out[1][...] -= self.known_dv.T
 
 
 def quat_log_between(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:

@@ -26,6 +26,7 @@ from estimator.problem import (
     interpolated_at_knots,
     knot_grid,
     model_with_sensors,
+    u_known_along,
     velocities,
 )
 from estimator.smoother import Linearizer, solve_window, with_covariance
@@ -383,13 +384,14 @@ def collect_estimate(
     model, h = problem.model, problem.h
     v = velocities(model, qpos, h)
     a = accelerations(v, h)
-    dyn = make_dynamics(model, "native", problem.settings.softness)
+    dyn = make_dynamics(model, "native")  # the problem's model, its softness applied
     qfrc = np.full((problem.T, model.nv), np.nan)
     constraints = []
     balance = (
         problem.settings.contact_forces == "balanced" and problem.settings.contact_force_std > 0
     )
     force_std = problem.settings.contact_force_std * model_weight(model)
+    qfrc_known = u_known_along(problem, qpos)
     data = mujoco.MjData(model)
     for k in range(problem.T):
         inv = dyn.inverse(qpos[k], v[k], a[k])
@@ -399,7 +401,7 @@ def collect_estimate(
             data.qpos[:] = qpos[k]
             mujoco.mj_kinematics(model, data)
             mujoco.mj_comPos(model, data)
-            residual = qfrc[k] - problem.qfrc_known[k]
+            residual = qfrc[k] - qfrc_known[k]
             c = balanced_constraints(model, data, c, residual, problem.known_sigma[k], force_std)
         constraints.append(c)
     imu_bias = {name: bias[:, problem.bias_of[name]] for name in problem.imu_streams}
@@ -416,7 +418,7 @@ def collect_estimate(
         qvel=v,
         qacc=a,
         qfrc_inverse=qfrc,
-        qfrc_known=problem.qfrc_known,
+        qfrc_known=qfrc_known,
         qpos_std=std,
         constraints=tuple(constraints),
         model_name=config.model,

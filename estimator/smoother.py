@@ -65,12 +65,14 @@ class WindowResult:
 @dataclass
 class Terms:
     """Inverse dynamics and sensors at the interior knots k = 1 … T−2, stacked (row i ↔ knot
-    i + 1). a, u: (K, nv); s: (K, ns). With Jacobians, derivatives with respect to
-    (x_{k−1}, x_k, x_{k+1}): Ju (K, nv, 3 nv), Js (K, ns, 3 nv), and da (K, 3, nv, 3) by key
-    and dof group (`Linearizer.dense`: a_k's row d reaches only d's group)."""
+    i + 1). a, u, known (u_known at the state): (K, nv); s: (K, ns). With Jacobians,
+    derivatives with respect to (x_{k−1}, x_k, x_{k+1}): Ju (K, nv, 3 nv) of u − u_known,
+    Js (K, ns, 3 nv), and da (K, 3, nv, 3) by key and dof group (`Linearizer.dense`: a_k's row
+    d reaches only d's group)."""
 
     a: np.ndarray
     u: np.ndarray
+    known: np.ndarray
     s: np.ndarray
     Ju: np.ndarray | None = None
     Js: np.ndarray | None = None
@@ -149,7 +151,7 @@ class Linearizer:
         v = velocities(p.model, qpos, h)
         a = accelerations(v, h)
         K = p.T - 2
-        u, s = np.zeros((K, nv)), np.zeros((K, ns))
+        u, known, s = np.zeros((K, nv)), np.zeros((K, nv)), np.zeros((K, ns))
         n_jac = K if with_jacobians else 0
         F = np.zeros((3, n_jac, nv, nv))  # ∂u/∂(q, v, a), MuJoCo's transposed layout
         S = np.zeros((3, n_jac, nv, ns))  # ∂s/∂(q, v, a)
@@ -189,7 +191,7 @@ class Linearizer:
             try:
                 for k in chunk:
                     i = k - 1
-                    u[i], s[i] = worker.evaluate(qpos[k], v[k], a[k])
+                    u[i], known[i], s[i] = worker.evaluate(k, qpos[k], v[k], a[k], with_jacobians)
                     if with_jacobians:
                         worker.jacobians(qpos[k], v[k], a[k], *F[:, i], *S[:, i])
             finally:
@@ -201,9 +203,9 @@ class Linearizer:
 
         list(self.pool.map(work, self.chunks(1, p.T - 1)))
         if not with_jacobians:
-            return Terms(a[1:-1], u, s)
+            return Terms(a[1:-1], u, known, s)
         da = np.stack([-d1[:-1], d1[1:] - d2[:-1], d2[1:]], axis=1) / h**2
-        return Terms(a[1:-1], u, s, JuT.transpose(0, 2, 1), JsT.transpose(0, 2, 1), da)
+        return Terms(a[1:-1], u, known, s, JuT.transpose(0, 2, 1), JsT.transpose(0, 2, 1), da)
 
     @staticmethod
     def chunks(start: int, stop: int, pieces: int = 4 * THREADS) -> list[range]:
@@ -262,7 +264,7 @@ class Linearizer:
         sigma = p.physics_sigma[1:-1]
         known = np.isfinite(sigma)
         w = np.where(known, 1.0 / np.where(known, sigma, 1.0), 0.0)
-        r = np.nan_to_num((t.u - p.qfrc_known[1:-1]) * w)
+        r = np.nan_to_num((t.u - t.known) * w)
         J = t.Ju * w[:, :, None] if t.Ju is not None else None
         J_offset = None
         if p.error_dofs.size:  # u − u_known − e_k on the unactuated dofs

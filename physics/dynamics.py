@@ -1,12 +1,13 @@
 """The engine's public interface: forward and inverse dynamics on two paths.
 
-    dyn = make_dynamics(model, path="native" | "reference", softness=Softness())
+    dyn = make_dynamics(model, path="native" | "reference", softness=None | Softness(...))
     fwd = dyn.forward(qpos, qvel, ctrl)        # (q, v, u) → v', impulses      (Section II)
     inv = dyn.inverse(qpos, qvel, qacc)        # (q, v, v') → u, impulses      (Section III)
 
 qacc is the discrete acceleration (v' − v)/h of the Euler step. Each Dynamics object owns a
-private copy of the model (with the softness settings written into it) and one MjData, so use
-one object per thread.
+private copy of the model and one MjData, so use one object per thread. softness=None keeps the
+model's own solref/solimp/impratio (the reference path then needs one softness for the whole
+model: `Softness.of_model`); a Softness replaces them everywhere (paper Section V).
 """
 
 from __future__ import annotations
@@ -30,10 +31,14 @@ class Dynamics(ABC):
     path: Path
 
     def __init__(self, model: mujoco.MjModel, softness: Softness | None = None) -> None:
-        self.softness = softness or Softness()
         check_model(model, self.path)
+        self.softness: Softness | None
         self.model = _copy_model(model)
-        self.softness.apply(self.model)
+        if softness is None:
+            self.softness = Softness.of_model(self.model) if self.path == "reference" else None
+        else:
+            softness.apply(self.model)
+            self.softness = softness
         self.data = mujoco.MjData(self.model)
 
     @property

@@ -20,7 +20,7 @@ class NativeDynamics(Dynamics):
 
     def __init__(self, model: mujoco.MjModel, softness: Softness | None = None) -> None:
         super().__init__(model, softness)
-        if self.softness.r_min != mujoco.mjMINVAL:
+        if self.softness is not None and self.softness.r_min != mujoco.mjMINVAL:
             raise UnsupportedModelError(
                 f"softness r_min={self.softness.r_min}: MuJoCo's C engine floors R at "
                 f"mjMINVAL={mujoco.mjMINVAL} only; use the reference path for another r_min"

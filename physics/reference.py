@@ -16,11 +16,18 @@ from physics.constraints import ConstraintSpace, constraint_space
 from physics.dynamics import Dynamics, Path
 from physics.inverse import impulses
 from physics.result import Constraints, Contacts, ForwardResult, InverseResult
+from physics.softness import Softness
 from physics.solver import solve_gpgs
 
 
 class ReferenceDynamics(Dynamics):
     path: Path = "reference"
+
+    @property
+    def paper_softness(self) -> Softness:
+        """The one softness of the model (Dynamics takes the model's own when given none)."""
+        assert self.softness is not None
+        return self.softness
 
     def forward(
         self,
@@ -44,7 +51,7 @@ class ReferenceDynamics(Dynamics):
         mujoco.mj_fwdPosition(m, d)
         mujoco.mj_fwdVelocity(m, d)
         mujoco.mj_fwdActuation(m, d)
-        space = constraint_space(m, d, self.softness)
+        space = constraint_space(m, d, self.paper_softness)
         v = d.qvel.copy()
         M = np.zeros((m.nv, m.nv))
         mujoco.mj_fullM(m, d, M)
@@ -98,7 +105,7 @@ class ReferenceDynamics(Dynamics):
         mujoco.mj_makeConstraint(m, d)
         mujoco.mj_comVel(m, d)
         mujoco.mj_passive(m, d)
-        space = constraint_space(m, d, self.softness)
+        space = constraint_space(m, d, self.paper_softness)
 
         # Theorems 2 and 4 at v' = v + h·qacc
         efc_impulse, state = impulses(space, d.qvel + h * d.qacc)

@@ -94,25 +94,77 @@ class Softness:
 
     def apply(self, model: mujoco.MjModel) -> None:
         """Write these settings into every solref/solimp of `model` and its impratio."""
-        refsafe = not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_REFSAFE
-        if refsafe and self.kappa < 2 * model.opt.timestep:
-            raise UnsupportedModelError(
-                f"softness kappa={self.kappa} s is below 2*timestep={2 * model.opt.timestep} s; "
-                "MuJoCo would silently clamp it (refsafe). Raise kappa or lower the timestep."
-            )
-        solref, solimp = self.solref(), self.solimp()
-        for ref_name, imp_name in (
-            ("geom_solref", "geom_solimp"),
-            ("pair_solref", "pair_solimp"),
-            ("jnt_solref", "jnt_solimp"),
-            ("dof_solref", "dof_solimp"),
-            ("eq_solref", "eq_solimp"),
-            ("tendon_solref_lim", "tendon_solimp_lim"),
-            ("tendon_solref_fri", "tendon_solimp_fri"),
-        ):
-            getattr(model, ref_name)[:] = solref
-            getattr(model, imp_name)[:] = solimp
+        override(model, eps=self.eps, kappa=self.kappa)
         model.pair_solreffriction[:] = 0.0  # (0, 0): friction dimensions use solref
-        model.opt.o_solref[:] = solref
-        model.opt.o_solimp[:] = solimp
+        model.opt.o_solref[:] = self.solref()
+        model.opt.o_solimp[:] = self.solimp()
         model.opt.impratio = self.impratio
+
+    @classmethod
+    def of_model(cls, model: mujoco.MjModel) -> Softness:
+        """The one softness every constraint element of `model` has (the reference path takes
+        one); raises UnsupportedModelError naming the first element that differs. Elements
+        that make no constraint (an unlimited joint's solreflimit, …) are not looked at."""
+        found: tuple[str, Softness] | None = None
+        for (ref_name, imp_name), used in zip(
+            SOLREF_SOLIMP_FIELDS, _constraining(model), strict=True
+        ):
+            refs, imps = getattr(model, ref_name), getattr(model, imp_name)
+            for i in np.flatnonzero(used):
+                element = f"{ref_name.removesuffix('_solref').split('_solref')[0]} {i}"
+                try:
+                    softness = cls.from_mujoco(refs[i], imps[i], float(model.opt.impratio))
+                except UnsupportedModelError as err:
+                    raise UnsupportedModelError(f"{element}: {err}") from None
+                if found is None:
+                    found = (element, softness)
+                elif softness != found[1]:
+                    raise UnsupportedModelError(
+                        f"{element} has softness eps={softness.eps:.6g}, kappa={softness.kappa:.6g}"
+                        f" but {found[0]} eps={found[1].eps:.6g}, kappa={found[1].kappa:.6g}: "
+                        "the paper's path takes one softness for the whole model"
+                    )
+        return found[1] if found else cls(impratio=float(model.opt.impratio))
+
+
+# every (solref, solimp) pair of MjModel, by element kind
+SOLREF_SOLIMP_FIELDS = (
+    ("geom_solref", "geom_solimp"),
+    ("pair_solref", "pair_solimp"),
+    ("jnt_solref", "jnt_solimp"),
+    ("dof_solref", "dof_solimp"),
+    ("eq_solref", "eq_solimp"),
+    ("tendon_solref_lim", "tendon_solimp_lim"),
+    ("tendon_solref_fri", "tendon_solimp_fri"),
+)
+
+
+def _constraining(model: mujoco.MjModel) -> tuple[np.ndarray, ...]:
+    """Per SOLREF_SOLIMP_FIELDS entry, which elements can make a constraint row."""
+    return (
+        (model.geom_contype | model.geom_conaffinity) != 0,
+        np.ones(model.npair, bool),
+        model.jnt_limited.astype(bool),
+        model.dof_frictionloss > 0,
+        np.ones(model.neq, bool),
+        model.tendon_limited.astype(bool),
+        model.tendon_frictionloss > 0,
+    )
+
+
+def override(model: mujoco.MjModel, eps: float | None = None, kappa: float | None = None) -> None:
+    """Replace the model's own softness, in place, where given: ε writes the flat impedance
+    d = 1/(1+ε) into every solimp, κ writes (κ, 1) into every solref. The model's impratio,
+    friction and contact geometry stay its own."""
+    given = Softness(eps=0.05 if eps is None else eps, kappa=0.02 if kappa is None else kappa)
+    refsafe = not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_REFSAFE
+    if kappa is not None and refsafe and kappa < 2 * model.opt.timestep:
+        raise UnsupportedModelError(
+            f"softness kappa={kappa} s is below 2*timestep={2 * model.opt.timestep} s; "
+            "MuJoCo would silently clamp it (refsafe). Raise kappa or lower the timestep."
+        )
+    for ref_name, imp_name in SOLREF_SOLIMP_FIELDS:
+        if kappa is not None:
+            getattr(model, ref_name)[:] = given.solref()
+        if eps is not None:
+            getattr(model, imp_name)[:] = given.solimp()

@@ -14,6 +14,7 @@ from estimator.cli import main
 from estimator.config import load_config
 from estimator.logs import read_log
 from estimator.problem import Settings
+from physics.softness import Softness
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +35,7 @@ def test_calibrate_finds_the_robots_softness_and_writes_a_config_that_uses_it(
     simulated, tmp_path, capsys
 ):
     log, config, true_eps = simulated
-    model_eps = Settings().softness_eps
+    model_eps = Softness.of_model(load_config(config).load_model()).eps  # the model's own
     assert true_eps > 1.15 * model_eps  # the robot is softer than the model by a grid step
     out, calibrated = tmp_path / "out", tmp_path / "elsewhere" / "calibrated.toml"
     argv = ["calibrate", str(log), "--config", str(config), "--out", str(out)]
@@ -90,7 +91,8 @@ def test_a_log_that_does_not_show_the_softness_keeps_the_configs_value(tmp_path)
     config = load_config(config_path)
     result = calibrate(config, read_log(log, config).measurements, Settings())
     costs = [p.mocap_cost for p in result.points]
-    assert not result.identified and result.best == 0.05 and result.sigma_log is None
+    assert not result.identified and result.sigma_log is None
+    assert result.best == result.initial == pytest.approx(0.05)  # the model's own
     assert len(costs) == 7 and max(costs) - min(costs) < 0.5
 
 

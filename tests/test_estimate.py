@@ -9,12 +9,13 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
+from factor_checks import jacobian_error
 from mcap_ros2.reader import read_ros2_messages
 
 from estimator.cli import main
 from estimator.config import load_config
 from estimator.logs import read_log
-from estimator.problem import Settings, build_problem, knot_grid, retract
+from estimator.problem import Settings, build_problem, knot_grid
 from estimator.run import collect_estimate, initial_trajectory
 from estimator.smoother import BandedSystem, Linearizer
 from estimator.truth import at_times, read_ground_truth
@@ -54,41 +55,9 @@ def test_factor_jacobians_match_numerical_differentiation_on_the_manifold(name, 
     reaching z_{k+2}) against central differences of q ⊕ x and b + δ."""
     method, _, error = method.partition("+")  # + the generalized force offset
     problem, qpos, bias = _window(name, first, 12, method, 50.0 if error else 0.0)
-    lin = Linearizer(problem)
-    k = 6
-
-    def rows_at_k(q: np.ndarray, b: np.ndarray, jacobian: bool) -> tuple[np.ndarray, ...]:
-        if jacobian:
-            r, J = lin.jacobian(q, b)
-            return r[k - 1], J[k - 1]
-        blocks = lin.blocks(lin.terms(q, False), b)
-        return np.concatenate([block.r[k - 1] for block in blocks]), None
-
-    try:
-        r0, J = rows_at_k(qpos, bias, True)
-        nv, nz = problem.model.nv, problem.nz
-        numeric = np.zeros_like(J)
-        eps = 1e-7
-        for i, key in enumerate(range(k - 1, k - 1 + lin.span)):
-            for c in range(nz):
-                rows = []
-                for sign in (1.0, -1.0):
-                    dx = np.zeros((problem.T, nv))
-                    db = np.zeros((problem.T, problem.nb))
-                    if c < nv:
-                        dx[key, c] = sign * eps
-                    else:
-                        db[key, c - nv] = sign * eps
-                    rows.append(rows_at_k(retract(problem.model, qpos, dx), bias + db, False)[0])
-                numeric[:, i * nz + c] = (rows[0] - rows[1]) / (2 * eps)
-    finally:
-        lin.close()
-    # mjd_inverseFD differentiates forward in its own finite steps: compare each row to its
-    # own scale; sensors and the prior are analytic up to the sensors' finite differences
-    scale = np.maximum(np.max(np.abs(numeric), axis=1, keepdims=True), 1.0)
-    error = np.abs(J - numeric) / scale
+    error, rows = jacobian_error(problem, qpos, bias)
     assert error.max() < 2e-3, f"worst row {np.unravel_index(error.argmax(), error.shape)}"
-    assert len(r0) > 2 * nv + 6  # sensor rows beyond physics (nv) and prior (nv) compared
+    assert rows > 2 * problem.model.nv + 6  # sensor rows beyond physics (nv) and prior (nv)
 
 
 def test_banded_normal_equations_and_marginals_match_the_dense_system():

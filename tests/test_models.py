@@ -12,6 +12,8 @@ import mujoco
 import numpy as np
 import pytest
 
+from physics.softness import Softness
+
 MODEL_DIR = Path(__file__).resolve().parents[1] / "physics" / "models"
 
 Cnstr = mujoco.mjtConstraint
@@ -186,17 +188,13 @@ def test_no_damping_springs_margins_or_gaps(name):
 
 
 @pytest.mark.parametrize("name", MODELS)
-def test_solref_and_solimp_are_mujoco_defaults(name):
+def test_models_carry_the_papers_nominal_softness_on_every_constraint(name):
+    """ε = 0.05, κ = 0.02 s in every element that can make a constraint, written into the model
+    itself: the model's own softness is what the simulator and the estimator use by default."""
     m = _model(name)
-    solref = np.array([0.02, 1.0])
-    solimp = np.array([0.9, 0.95, 0.001, 0.5, 2.0])
-    for field in ("geom", "jnt", "dof", "eq", "pair", "tendon"):
-        if field == "tendon":
-            refs, imps = m.tendon_solref_lim, m.tendon_solimp_lim
-        else:
-            refs, imps = getattr(m, f"{field}_solref"), getattr(m, f"{field}_solimp")
-        np.testing.assert_array_equal(refs, np.broadcast_to(solref, refs.shape), err_msg=field)
-        np.testing.assert_array_equal(imps, np.broadcast_to(solimp, imps.shape), err_msg=field)
+    own = Softness.of_model(m)
+    assert own.eps == pytest.approx(0.05, rel=1e-12) and own.kappa == 0.02
+    assert own.impratio == 1.0
 
 
 @pytest.mark.parametrize("name", MODELS)

@@ -72,7 +72,7 @@ def test_sensor_model_reproduces_the_simulated_sensors_at_the_true_trajectory(
     m = problem.model
     checked: set[str] = set()
     for k in range(1, traj.steps):
-        _, s = knots.evaluate(traj.qpos[k], v[k], a[k])
+        _, _, s = knots.evaluate(k, traj.qpos[k], v[k], a[k])
         for name, stream in config.streams.items():
             for element in stream.elements:
                 prefix = f"physfuse/{name}/{element}/"

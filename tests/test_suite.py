@@ -179,7 +179,8 @@ def test_each_robot_is_calibrated_on_its_own_log_and_every_method_takes_that_con
     )  # fmt: skip
     assert [(c.condition, c.error) for c in calibrations] == [("nominal", None), ("mismatch", None)]
     for c in calibrations:
-        assert c.initial == 0.05 and c.value is not None and Path(c.config).is_file()
+        assert c.initial == pytest.approx(0.05)  # the model's own
+        assert c.value is not None and Path(c.config).is_file()
         assert f"softness_eps = {c.value:.4g}" in Path(c.config).read_text()
     for run, c in zip(runs, calibrations, strict=True):  # the log's config, the robot's value
         assert run.error is None

@@ -40,6 +40,7 @@ import scipy.linalg
 from filterpy.kalman import ExtendedKalmanFilter, MerweScaledSigmaPoints, UnscentedKalmanFilter
 from scipy.stats import chi2
 
+from estimator.actuation import moment_dense
 from estimator.config import Config
 from estimator.errors import ConfigError
 from estimator.estimate import Estimate
@@ -48,11 +49,11 @@ from estimator.problem import (
     Problem,
     SensorBlock,
     Settings,
-    _actuator_moment,
     build_problem,
     knot_grid,
     model_with_sensors,
     quat_errors,
+    u_known_along,
 )
 from estimator.run import Summary, finish, initial_trajectory
 
@@ -396,7 +397,8 @@ class _Filter:
         self.chart = TangentChart.of(problem.model)
         nv, nb = problem.model.nv, problem.nb
         self.nv, self.nb, self.n = nv, nb, 2 * nv + nb
-        self.u = np.nan_to_num(problem.qfrc_known)
+        # the commands' force at the measured motion (the filters step with a known force)
+        self.u = np.nan_to_num(u_known_along(problem, qpos0))
         self.force_var = _force_variance(problem)
         self.rejected: dict[str, int] = {}  # stream → knots with a block rejected
         self.rejected_since: dict[str, int] = {}  # stream → first knot of its rejections
@@ -611,7 +613,9 @@ def _force_variance(problem: Problem) -> np.ndarray:
     is known, the largest force its actuators can apply (Σ_a |moment| · max|force_a|, from the
     force range, or gain · max|ctrl| for a fixed-gain actuator), else UNBOUNDED_FORCE_STD."""
     model = problem.model
-    moment = np.abs(_actuator_moment(model, mujoco.MjData(model)))  # (nu, nv)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    moment = np.abs(moment_dense(model, data))  # (nu, nv)
     largest = np.full(model.nu, np.inf)
     for a in range(model.nu):
         if model.actuator_forcelimited[a]:

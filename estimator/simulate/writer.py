@@ -294,9 +294,12 @@ def state_data(
 
 
 def body_twist(model: mujoco.MjModel, data: mujoco.MjData, body: int) -> np.ndarray:
-    """(6,) [angular, linear] velocity of the body frame's origin, in the body frame."""
+    """(6,) [angular, linear] velocity of the body frame's origin, in the body frame.
+
+    mjOBJ_XBODY: the body frame (xpos, xmat); mjOBJ_BODY would give the centre of mass in the
+    principal-inertia frame (xipos, ximat), whose axes differ on most public models."""
     res = np.zeros(6)
-    mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_BODY, body, res, 1)
+    mujoco.mj_objectVelocity(model, data, mujoco.mjtObj.mjOBJ_XBODY, body, res, 1)
     return res
 
 
