@@ -34,6 +34,8 @@ Schema (see `configs/README.md` for a worked example):
       joint_state   joints = "model" (message names are model joint names) or
                     joints = { ros_name = "model_joint", ... }   (sensor_msgs/JointState)
       command       actuators = ["a0", "a1", ...]  (Float64MultiArray: data[i] drives a_i), or
+                    actuators = "model" (data[i] drives the model's actuator i; with field,
+                    JointTrajectory joint names are the actuators' joints), or
                     actuators = { ros_joint = "actuator", ... } with
                     field = "positions" | "velocities" | "accelerations" | "effort"
                     (JointTrajectory: the first point's field)
@@ -425,6 +427,14 @@ class _Parser:
                 "missing; a list of actuator names (Float64MultiArray) or a table "
                 '{ ros_joint = "actuator" } (JointTrajectory)',
             )
+        if actuators == "model":
+            return self.model_actuators(raw, key, model)
+        if isinstance(actuators, str):
+            raise self.error(
+                f"{key}.actuators",
+                f'expected "model", a list of actuator names or a table {{ ros_joint = '
+                f'"actuator" }}, got {actuators!r}',
+            )
         if isinstance(actuators, list):
             if "field" in raw:
                 raise self.error(
@@ -451,6 +461,54 @@ class _Parser:
         trajectory_field = self.choice(raw["field"], f"{key}.field", TRAJECTORY_FIELDS)
         return self.name_table(raw, key, "actuators", "actuator", "JointTrajectory joint name") | {
             "field": trajectory_field
+        }
+
+    def model_actuators(
+        self, raw: dict[str, Any], key: str, model: mujoco.MjModel
+    ) -> dict[str, Any]:
+        """actuators = "model": a Float64MultiArray's data[i] drives the model's actuator i; a
+        JointTrajectory (with field) drives each actuator through its joint's name."""
+        names = tuple(
+            mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, i) or "" for i in range(model.nu)
+        )
+        if not names:
+            raise self.error(f"{key}.actuators", "the model has no actuators")
+        if "" in names:
+            raise self.error(
+                f"{key}.actuators",
+                f'"model" needs named actuators; actuator #{names.index("")} has no name',
+            )
+        keys = tuple(f"{key}.actuators" for _ in names)
+        if "field" not in raw:
+            sources = tuple(str(i) for i in range(len(names)))
+            return {
+                "element_type": "actuator",
+                "elements": names,
+                "sources": sources,
+                "element_keys": keys,
+                "field": None,
+            }
+        joints = []
+        for i, name in enumerate(names):
+            joint = None
+            if int(model.actuator_trntype[i]) == mujoco.mjtTrn.mjTRN_JOINT.value:
+                joint = mujoco.mj_id2name(
+                    model, mujoco.mjtObj.mjOBJ_JOINT, int(model.actuator_trnid[i, 0])
+                )
+            if not joint:
+                raise self.error(
+                    f"{key}.actuators",
+                    f'"model" with a JointTrajectory maps actuators by their joint; {name!r} '
+                    'drives no named joint: give the table { ros_joint = "actuator" }',
+                )
+            joints.append(joint)
+        trajectory_field = self.choice(raw["field"], f"{key}.field", TRAJECTORY_FIELDS)
+        return {
+            "element_type": "actuator",
+            "elements": names,
+            "sources": tuple(joints),
+            "element_keys": keys,
+            "field": trajectory_field,
         }
 
     # -- shared pieces ---------------------------------------------------------------------

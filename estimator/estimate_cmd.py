@@ -23,6 +23,7 @@ from estimator.config import load_config
 from estimator.errors import LogError, output_dir
 from estimator.estimate import Estimate
 from estimator.logs import read_log
+from estimator.model_checks import command_warnings, commands_against_efforts
 from estimator.problem import CHOICES, SETTINGS, Settings
 from estimator.run import Summary, estimate, initial_trajectory
 from estimator.simulate.writer import (
@@ -78,7 +79,11 @@ def run(args: argparse.Namespace) -> int:
     }
     settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None})
     log = read_log(args.log, config)
-    for warning in log.warnings:
+    # the log's, and commands that disagree with the logged efforts through the actuators
+    input_warnings = list(log.warnings) + command_warnings(
+        commands_against_efforts(config, config.load_model(), log.measurements)
+    )
+    for warning in input_warnings:
         print(f"physfuse estimate: warning: {warning}", file=sys.stderr)
     bar = tqdm(total=0, unit="window", disable=args.quiet or not sys.stderr.isatty())
 
@@ -87,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
         bar.update(done - bar.n)
 
     est, summary = estimate(config, log.measurements, settings, progress)
+    summary = replace(summary, warnings=input_warnings + summary.warnings)
     bar.close()
     model = config.load_model()
     out: Path = args.out

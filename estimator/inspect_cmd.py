@@ -16,11 +16,27 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import mujoco
+import numpy as np
+
 from estimator.config import Config, NameCheck, check_model_names, load_config
 from estimator.errors import ConfigError, MissingTopicError
 from estimator.logs import ros2_types
-from estimator.logs.measurements import BadSampleCounts, TopicStats
+from estimator.logs.measurements import BadSampleCounts, Measurement, TopicStats
 from estimator.logs.reader import Log, read_log
+from estimator.model_checks import (
+    ActuatorRow,
+    CommandCheck,
+    ContactSetting,
+    RestingDepth,
+    actuator_rows,
+    command_warnings,
+    commands_against_efforts,
+    contact_settings,
+    resting_penetration,
+)
+from estimator.problem import Settings
+from physics.errors import UnsupportedModelError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,15 +59,25 @@ class CheckItem:
 
 
 def run(args: argparse.Namespace) -> int:
-    config = load_config(args.config, check_names=False) if args.config else None
+    config = (
+        load_config(args.config, check_names=False, extra_sections=("estimator", "simulate"))
+        if args.config
+        else None
+    )
     log = read_log(args.log, config, decode_all=True, require=False)
     checks = _checklist(log, config) if config is not None else []
+    model = _model_facts(log, config, checks) if config is not None else None
 
     lines = _report(log, config, checks)
+    if model is not None:
+        lines += _model_report(model)
     print("\n".join(lines))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(_as_json(log, config, checks), indent=2))
+        report = _as_json(log, config, checks)
+        if model is not None:
+            report["model"] = _model_json(model)
+        args.json.write_text(json.dumps(report, indent=2))
 
     failed = [c for c in checks if c.required and not c.found]
     if config is not None and failed:
@@ -157,6 +183,143 @@ def _source_label(kind: str, field: str | None, source: str) -> str:
     }[kind] + f" {source!r}"
 
 
+# -- the model: actuators, contact settings, commands against efforts -------------------------
+@dataclass(frozen=True)
+class ModelFacts:
+    config: Config
+    model: mujoco.MjModel
+    overrides: dict[str, float]  # the config's softness settings replacing the model's own
+    actuators: list[ActuatorRow]
+    commanded: dict[str, str]  # actuator → the command stream that drives it
+    contacts: list[ContactSetting]
+    resting: list[RestingDepth]
+    keyframe: str | None
+    commands: list[CommandCheck]
+
+
+def _model_facts(log: Log, config: Config, checks: list[CheckItem]) -> ModelFacts | None:
+    """The model's facts, with the config's softness overrides applied (None when a name the
+    config uses is missing: the checklist says which)."""
+    if any(not c.found and c.what.startswith("model ") for c in checks):
+        return None
+    settings = Settings.from_config(config)
+    model = config.load_model()
+    try:
+        settings.apply_softness(model)
+    except UnsupportedModelError as err:
+        raise ConfigError(f"{config.path}: estimator.{err}") from None
+    overrides = {
+        name: value
+        for name in ("softness_eps", "softness_kappa")
+        if (value := getattr(settings, name)) is not None
+    }
+    commanded = {
+        actuator: name
+        for name, stream in config.streams.items()
+        if stream.kind == "command"
+        for actuator in stream.elements
+    }
+    keyframe = 0 if model.nkey else None
+    return ModelFacts(
+        config,
+        model,
+        overrides,
+        actuator_rows(model),
+        commanded,
+        contact_settings(model),
+        resting_penetration(model, keyframe),
+        (mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_KEY, 0) or "#0") if model.nkey else None,
+        commands_against_efforts(config, model, log.measurements),
+    )
+
+
+def _model_report(facts: ModelFacts) -> list[str]:
+    m = facts.model
+    cone = "elliptic" if m.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC else "pyramidal"
+    lines = [
+        "",
+        f"model: {facts.config.model_path}: nq {m.nq}, nv {m.nv}, nu {m.nu}, timestep "
+        f"{m.opt.timestep:g} s, cone {cone}, impratio {m.opt.impratio:g}",
+    ]
+    if facts.actuators:
+        lines += [
+            "actuators (commands become forces through these, at each knot's state):",
+            f"  {'name':<26} {'kind':<9} {'drives':<26} {'gear':>6} {'kp':>8} {'kv':>7} "
+            f"{'ctrlrange':>17} {'forcerange':>17}  commands",
+        ]
+        for a in facts.actuators:
+            stream = facts.commanded.get(a.name, "-")
+            if a.unsupported and a.name in facts.commanded:
+                stream += f" (cannot be used: {a.unsupported})"
+            lines.append(
+                f"  {a.name:<26} {a.kind:<9} {a.target:<26} {a.gear:>6g} {a.kp:>8g} {a.kv:>7g} "
+                f"{_range_text(a.ctrlrange):>17} {_range_text(a.forcerange):>17}  {stream}"
+            )
+    source = (
+        "the config's "
+        + ", ".join(f"{k} = {v:g}" for k, v in facts.overrides.items())
+        + " over the model's own"
+        if facts.overrides
+        else "the model's own"
+    )
+    lines += [
+        f"contact settings in use ({source}):",
+        f"  {'solref':>16} {'solimp d0, dwidth, width':>26} {'ε at d0, dwidth':>17} "
+        f"{'friction':>22} {'condim':>6} {'margin':>7}  geoms",
+    ]
+    for c in facts.contacts:
+        names = ", ".join(c.elements[:4]) + (
+            f" +{len(c.elements) - 4}" if len(c.elements) > 4 else ""
+        )
+        lines.append(
+            f"  {_numbers(c.solref[:2]):>16} {_numbers(c.solimp[:3]):>26} {_numbers(c.eps):>17} "
+            f"{_numbers(c.friction):>22} {c.condim:>6} {c.margin:>7g}  {names}"
+        )
+    posture = f"keyframe {facts.keyframe!r}" if facts.keyframe else "qpos0"
+    for r in facts.resting:
+        lines.append(
+            f"resting penetration under its weight ({posture} posture, at rest): {r.body} sinks "
+            f"{1e3 * r.penetration_m:.2f} mm into its {r.contacts} contacts "
+            f"(at z = {r.height_m:.4f} m)"
+        )
+    if facts.commands:
+        lines.append("commands against the logged joint efforts (through the actuators):")
+        for check in facts.commands:
+            lines.append(
+                f"  {check.actuator:<26} on {check.joint:<26} effort ≈ {check.gain:+.3g} × "
+                f"commanded force, RMS apart {check.residual_rms:.3g} (effort RMS "
+                f"{check.effort_rms:.3g}): {check.problem or 'consistent'}"
+            )
+    lines += [f"WARNING: {w}" for w in command_warnings(facts.commands)]
+    return lines
+
+
+def _gain(value: float) -> str:
+    return f"{value:g}" if value else "-"
+
+
+def _range_text(r: tuple[float, float] | None) -> str:
+    return "-" if r is None else f"[{r[0]:g}, {r[1]:g}]"
+
+
+def _numbers(values: tuple[float, ...]) -> str:
+    return " ".join(f"{v:.4g}" for v in values)
+
+
+def _model_json(facts: ModelFacts) -> dict[str, Any]:
+    return {
+        "path": str(facts.config.model_path),
+        "impratio": float(facts.model.opt.impratio),
+        "softness_overrides": facts.overrides,
+        "actuators": [
+            {**asdict(a), "commanded_by": facts.commanded.get(a.name)} for a in facts.actuators
+        ],
+        "contact_settings": [{**asdict(c), "eps": c.eps} for c in facts.contacts],
+        "resting_penetration": [asdict(r) for r in facts.resting],
+        "commands_against_efforts": [{**asdict(c), "problem": c.problem} for c in facts.commands],
+    }
+
+
 # -- the text report ---------------------------------------------------------------------------
 def _report(log: Log, config: Config | None, checks: list[CheckItem]) -> list[str]:
     topics = list(log.topics.values())
@@ -204,12 +367,16 @@ def _report(log: Log, config: Config | None, checks: list[CheckItem]) -> list[st
     lines += [
         "",
         f"config: {config.path} (model {config.model})",
-        f"{'stream':<20} {'type':<13} {'topic':<28} {'samples':>8}  skipped",
+        f"{'stream':<20} {'type':<13} {'topic':<28} {'samples':>8} {'rate Hz':>8} "
+        f"{'max gap ms':>10} {'at s':>7}  skipped",
     ]
     for name, stream in config.streams.items():
         m = log.measurements[name]
+        rate_hz, gap_ms, gap_at, dropout = _stream_timing(m, t0)
         lines.append(
-            f"{name:<20} {stream.kind:<13} {stream.topic:<28} {len(m):>8}  {_bad_text(m.bad)}"
+            f"{name:<20} {stream.kind:<13} {stream.topic:<28} {len(m):>8} {rate_hz:>8.1f} "
+            f"{gap_ms:>10.2f} {gap_at:>7.3f}  {_bad_text(m.bad)}"
+            + (f"  (largest gap: {dropout}, while the stream went on)" if dropout else "")
         )
     lines += ["", "checklist:"]
     for c in checks:
@@ -217,6 +384,27 @@ def _report(log: Log, config: Config | None, checks: list[CheckItem]) -> list[st
         detail = f": {c.detail}" if c.detail else ""
         lines.append(f"  {status:<18} {c.what}  [{c.key}]{detail}")
     return lines
+
+
+def _stream_timing(m: Measurement, t0: int) -> tuple[float, float, float, str | None]:
+    """A stream's rate (Hz, median interval), its largest gap (ms) and when it began (s),
+    over each of its elements' own samples (a TF child frame, a marker, a rigid body that
+    drops out while the others go on); that element named where its gap is longer than the
+    stream's own."""
+    if len(m) < 2:
+        return 0.0, 0.0, 0.0, None
+    rate = 1e9 / float(np.median(np.diff(m.t_ns)))
+    gap, at, element = 0, 0, ""
+    for e, name in enumerate(m.elements):
+        t = m.t_ns[np.isfinite(m.values[:, e]).any(axis=1)]
+        if len(t) < 2:
+            continue
+        i = int(np.argmax(np.diff(t)))
+        if t[i + 1] - t[i] > gap:
+            gap, at, element = int(t[i + 1] - t[i]), int(t[i]), name
+    stream_gap = int(np.max(np.diff(m.t_ns)))
+    dropout = element if len(m.elements) > 1 and gap > 1.5 * stream_gap else None
+    return rate, gap / 1e6, (at - t0) / 1e9, dropout
 
 
 def _bad_text(bad: BadSampleCounts) -> str:

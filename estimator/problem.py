@@ -567,12 +567,24 @@ def _biased_pair(
     ]
 
 
+def joint_name(model: mujoco.MjModel, j: int) -> str:
+    """Joint j's name; an unnamed joint (a free joint often is) by its body: `<body>`, or
+    `<body>_joint<k>` for the body's k-th unnamed joint after the first."""
+    name = mujoco.mj_id2name(model, _OBJ.mjOBJ_JOINT, j)
+    if name:
+        return name
+    body = int(model.jnt_bodyid[j])
+    body_name = mujoco.mj_id2name(model, _OBJ.mjOBJ_BODY, body) or f"body{body}"
+    k = j - int(model.body_jntadr[body])
+    return body_name if k == 0 else f"{body_name}_joint{k}"
+
+
 def dof_names(model: mujoco.MjModel) -> list[str]:
     """(nv,) one name per dof: `<joint>` for hinges and slides, `<joint>_{x,y,z,rx,ry,rz}`
     for free joints (world translation, body rotation), `<joint>_{rx,ry,rz}` for balls."""
     names = [""] * model.nv
     for j in range(model.njnt):
-        joint = mujoco.mj_id2name(model, _OBJ.mjOBJ_JOINT, j) or f"joint{j}"
+        joint = joint_name(model, j)
         kind = model.jnt_type[j]
         if kind == mujoco.mjtJoint.mjJNT_FREE:
             suffixes = ["_x", "_y", "_z", "_rx", "_ry", "_rz"]

@@ -24,6 +24,7 @@ from estimator.problem import (
     build_problem,
     dof_names,
     interpolated_at_knots,
+    joint_name,
     knot_grid,
     model_with_sensors,
     u_known_along,
@@ -502,7 +503,7 @@ def largest_residuals(est: Estimate, problem: Problem, n: int = 5) -> list[dict]
                 break
             what = f"dof {j}"
             if name == "physics":
-                joint = mujoco.mj_id2name(model, _OBJ.mjOBJ_JOINT, int(model.dof_jntid[j]))
+                joint = joint_name(model, int(model.dof_jntid[j]))
                 what = f"dof {j} (joint {joint!r})"
             entries.append(
                 {

@@ -411,6 +411,7 @@ def unit_quat(a: float) -> np.ndarray:
 def value(topic: str, k: int) -> dict[str, Any]:
     """The k-th message's numbers on each sample topic (what the reader must return)."""
     x = 0.001 * k
+    t = k / SAMPLE_TOPICS[topic][1] if topic in SAMPLE_TOPICS else x  # s
     return {
         "pos": np.array([x, 2 * x, 1 + 0.5 * x]),
         "quat": unit_quat(0.01 * k + len(topic)),
@@ -418,7 +419,7 @@ def value(topic: str, k: int) -> dict[str, Any]:
         "accel": np.array([0.0, 0.1 * x, 9.81]),
         "q": np.array([0.1 + x, -0.2 - x]),  # hip, knee
         "qd": np.array([1.0 + x, -1.0]),
-        "tau": np.array([5.0 * x, -2.0]),
+        "tau": np.array([2.0 * t, -2.0]),  # in time: commands and efforts agree
         "force": np.array([1.0, 2.0 + x, 300.0]),
         "torque": np.array([0.1, -0.1 * x, 0.0]),
     }

@@ -61,6 +61,18 @@ def test_joints_model_maps_the_hinge_and_slide_joints(tmp_path):
     assert stream.elements == ("hip", "knee") and stream.sources == ("hip", "knee")
 
 
+def test_actuators_model_maps_the_models_actuators_in_order(tmp_path):
+    """A Float64MultiArray's data[i] drives actuator i; a JointTrajectory by each actuator's
+    joint name."""
+    text = HEAD + '[streams.c]\ntype = "command"\ntopic = "/c"\nactuators = "model"\n'
+    stream = _load(tmp_path, text).streams["c"]
+    assert stream.elements == ("hip_motor", "knee_motor") and stream.sources == ("0", "1")
+    text += '[streams.t]\ntype = "command"\ntopic = "/t"\nactuators = "model"\nfield = "effort"\n'
+    stream = _load(tmp_path, text).streams["t"]
+    assert stream.elements == ("hip_motor", "knee_motor") and stream.sources == ("hip", "knee")
+    assert stream.field == "effort"
+
+
 def test_bundled_model_by_name(tmp_path):
     text = 'model = "humanoid"\n[streams.imu]\ntype = "imu"\ntopic = "/imu"\nsite = "imu"\n'
     config = _load(tmp_path, text)
@@ -201,6 +213,10 @@ STREAM = '[streams.s]\ntype = "pose"\ntopic = "/p"\n'
             "streams.s.child_frame_id: missing",
         ),
         (HEAD + "[streams]\ns = 3\n", "streams.s: expected a table, got 3 (int)"),
+        (
+            HEAD + '[streams.s]\ntype = "command"\ntopic = "/c"\nactuators = "all"\n',
+            'streams.s.actuators: expected "model", a list of actuator names or a table',
+        ),
     ],
 )
 def test_config_errors_name_the_key_and_the_allowed_values(tmp_path, text, expected):

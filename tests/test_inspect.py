@@ -98,11 +98,9 @@ def test_injected_bad_samples_are_counted_per_topic_and_stream(files, capsys, tm
     assert _row(out, "/joint_states")[-2:] == ["nan=1", "wrong_length=1"]
     assert _row(out, "/joint_commands")[-1] == "-"
     (joints,) = [line for line in out.splitlines() if line.startswith("joints ")]
-    assert joints.split()[-3:] == [
-        str(COUNTS["/joint_states"] - 2),
-        "wrong_length=1",
-        "unknown_name=1",
-    ]
+    columns = joints.split()  # stream, type, topic, samples, rate, gap, at, skipped…
+    assert columns[3] == str(COUNTS["/joint_states"] - 2)
+    assert columns[-2:] == ["wrong_length=1", "unknown_name=1"]
     report = json.loads((tmp_path / "r.json").read_text())
     for stream, expected in rl.BAD_STREAM_COUNTS.items():
         got = {k: v for k, v in report["streams"][stream]["bad"].items() if v}
@@ -161,3 +159,29 @@ def test_bad_arguments_are_one_line_errors(files, capsys, tmp_path):
     assert "not an MCAP file" in err
     code, _, err = _run(capsys, log, "--config", tmp_path / "none.toml")
     assert code == 2 and "config file not found" in err
+
+
+def test_a_dropout_of_one_tf_child_frame_is_reported_per_frame(tmp_path, capsys):
+    """/tf goes on at 100 Hz while shin_link is missing from it for 0.2 s: the topic's gap is
+    10 ms, the tf_shin stream's 210 ms, at 0.3 s."""
+    config = rl.write_robot(tmp_path)
+    messages = rl.sample_recording(1.0)
+    tf = [msg for msg in messages if msg.topic == "/tf"]
+    t0 = tf[0].fields["transforms"][0]["header"]["stamp"]
+    for msg in tf:
+        stamp = msg.fields["transforms"][0]["header"]["stamp"]
+        t = stamp["sec"] - t0["sec"] + (stamp["nanosec"] - t0["nanosec"]) / 1e9
+        if 0.305 < t < 0.505:
+            msg.fields["transforms"] = [
+                tf for tf in msg.fields["transforms"] if tf["child_frame_id"] != "shin_link"
+            ]
+    log = tmp_path / "dropout.mcap"
+    rl.write_mcap(log, messages)
+    code, out, _ = _run(capsys, log, "--config", config)
+    assert code == 0
+    topic = _row(out, "/tf")
+    assert float(topic[5]) < 1.0 and float(topic[6]) < 15.0  # span, largest gap in ms
+    shin = _row(out, "tf_shin")
+    torso = _row(out, "tf_torso")
+    assert 205.0 < float(shin[5]) < 215.0 and float(shin[6]) == pytest.approx(0.3, abs=0.011)
+    assert float(torso[5]) < 15.0
