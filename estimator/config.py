@@ -41,6 +41,12 @@ Schema (see `configs/README.md` for a worked example):
                     (JointTrajectory: the first point's field)
       wrench        site = "ft_site", quat_site_sensor = [w, x, y, z]   (WrenchStamped)
 
+    Mountings without editing the model: pose, tf, imu and wrench streams take
+    mount = { pos = [x, y, z], quat = [w, x, y, z] }, the sensor's (marker's, rigid body's)
+    pose in the frame of its body or site; imu and wrench also take body = "<body>" instead of
+    a site (mounted at the body's origin unless mount says otherwise). The model gets a site
+    `physfuse/<stream>/mount` there.
+
 Noise keys per kind (standard deviations per sample unless named a walk; SI units, joint
 quantities in the joint's own units, rad or m):
 
@@ -71,6 +77,7 @@ from types import MappingProxyType
 from typing import Any
 
 import mujoco
+import numpy as np
 
 from estimator.errors import ConfigError
 from physics.errors import PhysicsError
@@ -108,14 +115,14 @@ NOISE_DEFAULTS: Mapping[str, Mapping[str, float]] = {
 
 _COMMON_KEYS = ("type", "topic", "stamp", "time_offset_ns", "required", "noise")
 _KIND_KEYS: Mapping[str, tuple[str, ...]] = {
-    "pose": ("body", "site"),
-    "tf": ("child_frame_id", "parent_frame_id", "body", "site"),
+    "pose": ("body", "site", "mount"),
+    "tf": ("child_frame_id", "parent_frame_id", "body", "site", "mount"),
     "rigid_bodies": ("bodies",),
     "markers": ("markers",),
-    "imu": ("site", "quat_site_sensor", "accel_range", "gyro_range"),
+    "imu": ("site", "body", "quat_site_sensor", "accel_range", "gyro_range", "mount"),
     "joint_state": ("joints",),
     "command": ("actuators", "field"),
-    "wrench": ("site", "quat_site_sensor"),
+    "wrench": ("site", "body", "quat_site_sensor", "mount"),
 }
 _TOP_KEYS = ("model", "description", "streams")
 _IDENTITY_WXYZ = (1.0, 0.0, 0.0, 0.0)
@@ -127,6 +134,35 @@ _OBJ_TYPES: Mapping[str, int] = {
     "joint": mujoco.mjtObj.mjOBJ_JOINT,
     "actuator": mujoco.mjtObj.mjOBJ_ACTUATOR,
 }
+
+
+@dataclass(frozen=True)
+class Mount:
+    """Where a sensor sits on the model without editing it: a site `site` added to the model at
+    `pos`, `quat_wxyz` in the frame of the body or site `parent` (of `parent_type`)."""
+
+    site: str
+    parent_type: str  # "body" | "site"
+    parent: str
+    pos: tuple[float, float, float]
+    quat_wxyz: tuple[float, float, float, float]
+
+    def add_to(self, spec: mujoco.MjSpec, model: mujoco.MjModel) -> None:
+        """Add the mount's site to `spec` (`model`: the same model compiled, for a site
+        parent's resolved pose): on the parent body, at the parent's pose ∘ the mount's."""
+        pos, quat = np.array(self.pos), np.array(self.quat_wxyz)
+        if self.parent_type == "site":
+            i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, self.parent)
+            body = int(model.site_bodyid[i])
+            rotated, composed = np.zeros(3), np.zeros(4)
+            mujoco.mju_rotVecQuat(rotated, pos, model.site_quat[i])
+            mujoco.mju_mulQuat(composed, model.site_quat[i], quat)
+            pos, quat = model.site_pos[i] + rotated, composed
+            parent = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, body) or "world"
+        else:
+            parent = self.parent
+        site = (spec.worldbody if parent == "world" else spec.body(parent)).add_site()
+        site.name, site.pos, site.quat = self.site, pos, quat
 
 
 @dataclass(frozen=True)
@@ -156,6 +192,8 @@ class StreamConfig:
     accel_range: float = math.inf  # m/s²
     gyro_range: float = math.inf  # rad/s
     parent_frame_id: str | None = None  # tf: accept only transforms from this frame
+    # where the sensor sits when the config mounts it: `elements` is then its added site
+    mount: Mount | None = None
 
 
 @dataclass(frozen=True)
@@ -170,8 +208,20 @@ class Config:
     sections: Mapping[str, Any] = field(default_factory=dict)
 
     def load_model(self) -> mujoco.MjModel:
-        """The MuJoCo model the config maps onto."""
-        return load_model(self.model_path)
+        """The MuJoCo model the config maps onto, with the sites of its mounts."""
+        if not any(s.mount for s in self.streams.values()):
+            return load_model(self.model_path)
+        return self.model_spec().compile()
+
+    def model_spec(self) -> mujoco.MjSpec:
+        """The model as an MjSpec, with one site per mounted stream (`Mount`)."""
+        spec = mujoco.MjSpec.from_file(str(self.model_path))
+        mounts = [s.mount for s in self.streams.values() if s.mount]
+        if mounts:
+            model = load_model(self.model_path)
+            for mount in mounts:
+                mount.add_to(spec, model)
+        return spec
 
     def streams_on(self, topic: str) -> tuple[StreamConfig, ...]:
         """The streams fed by `topic` (several streams may share one, e.g. /tf)."""
@@ -223,6 +273,14 @@ def check_model_names(config: Config, model: mujoco.MjModel) -> tuple[NameCheck,
     valid["joint"] = _scalar_joints(model)  # a JointState reports hinge and slide joints
     checks = []
     for stream in config.streams.values():
+        if stream.mount is not None:  # its site is added to the model: check what it is on
+            mount = stream.mount
+            names = valid[mount.parent_type]
+            (key,) = stream.element_keys
+            checks.append(
+                NameCheck(key, mount.parent_type, mount.parent, mount.parent in names, names)
+            )
+            continue
         names = valid[stream.element_type]
         for key, name in zip(stream.element_keys, stream.elements, strict=True):
             checks.append(NameCheck(key, stream.element_type, name, name in names, names))
@@ -343,6 +401,9 @@ class _Parser:
             )
         noise = self.noise(raw.get("noise", {}), f"{key}.noise", kind)
         mapping = getattr(self, f"map_{kind}")(raw, key, model)
+        mount = self.mount(raw, key, name, kind, mapping)
+        if mount is not None:
+            mapping |= {"element_type": "site", "elements": (mount.site,), "mount": mount}
         has_header = not (kind == "command" and mapping["field"] is None)
         stamp = self.choice(
             raw.get("stamp", "header" if has_header else "log"), f"{key}.stamp", STAMPS
@@ -528,19 +589,42 @@ class _Parser:
         }
 
     def sensor_site(self, raw: dict[str, Any], key: str) -> dict[str, Any]:
-        if "site" not in raw:
-            raise self.error(f"{key}.site", "missing; the model site the sensor is mounted at")
-        name = self.string(raw["site"], f"{key}.site")
+        """The site an IMU or F/T sensor is at, or a body it is mounted on (`mount`)."""
+        if "site" not in raw and "body" not in raw:
+            raise self.error(
+                f"{key}.site",
+                'missing; the model site the sensor is at, or body = "<body>" with '
+                "mount = { pos = [x, y, z], quat = [w, x, y, z] }",
+            )
         quat = self.quaternion(
             raw.get("quat_site_sensor", _IDENTITY_WXYZ), f"{key}.quat_site_sensor"
         )
-        return {
-            "element_type": "site",
-            "elements": (name,),
-            "sources": None,
-            "element_keys": (f"{key}.site",),
-            "quat_site_sensor": quat,
-        }
+        return self.body_or_site(raw, key) | {"sources": None, "quat_site_sensor": quat}
+
+    def mount(
+        self, raw: dict[str, Any], key: str, name: str, kind: str, mapping: dict[str, Any]
+    ) -> Mount | None:
+        """mount = { pos = [x, y, z], quat = [w, x, y, z] }: the sensor's pose in its body's
+        or site's frame (m; default 0 and identity). An IMU or F/T sensor on a body is mounted
+        at the body's origin when no mount is given (MuJoCo's sensors sit at sites)."""
+        on_body = kind in ("imu", "wrench") and mapping["element_type"] == "body"
+        if "mount" not in raw and not on_body:
+            return None
+        table = self.table(raw.get("mount", {}), f"{key}.mount")
+        self.unknown_keys(table, f"{key}.mount", ("pos", "quat"))
+        pos = table.get("pos", [0.0, 0.0, 0.0])
+        ok = (
+            isinstance(pos, list)
+            and len(pos) == 3
+            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in pos)
+            and all(math.isfinite(v) for v in pos)
+        )
+        if not ok:
+            raise self.error(f"{key}.mount.pos", f"expected [x, y, z] in m, got {self.show(pos)}")
+        quat = self.quaternion(table.get("quat", list(_IDENTITY_WXYZ)), f"{key}.mount.quat")
+        x, y, z = (float(v) for v in pos)
+        (parent,) = mapping["elements"]
+        return Mount(f"physfuse/{name}/mount", mapping["element_type"], parent, (x, y, z), quat)
 
     def name_table(
         self, raw: dict[str, Any], key: str, table_key: str, element_type: str, what: str

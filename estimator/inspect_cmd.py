@@ -142,9 +142,12 @@ def _checklist(log: Log, config: Config) -> list[CheckItem]:
             zip(stream.element_keys, stream.elements, strict=True)
         ):
             check: NameCheck = model_checks[element_key]
+            what = f"model {stream.element_type} {element!r}"
+            if stream.mount is not None:
+                what = f"model {check.element_type} {check.name!r} (mounted: {element!r})"
             items.append(
                 CheckItem(
-                    f"model {stream.element_type} {element!r}",
+                    what,
                     element_key,
                     check.found,
                     True,

@@ -333,7 +333,7 @@ def model_with_sensors(
 
     Returns the compiled model and, per stream, the names of its sensors in measurement order.
     """
-    spec = mujoco.MjSpec.from_file(str(config.model_path))
+    spec = config.model_spec()
     names: dict[str, list[str]] = {}
     for stream in config.streams.values():
         names[stream.name] = _add_sensors(spec, stream)
