@@ -1,4 +1,6 @@
 """`physfuse simulate SCENARIO --out LOG.mcap [--seed N]`: a realistic robot log with ground truth.
+`physfuse simulate --model MODEL.xml --out LOG.mcap [...]`: the same for any MJCF model with a
+keyframe (estimator/simulate/model_scenario.py, docs/simulate_model.md).
 
 Runs a bundled model under a controller (with a seeded model mismatch) and writes the MCAP
 a real robot could have produced — rosbag2 layout: profile `ros2`, `ros2msg` schemas, `cdr`
@@ -18,11 +20,46 @@ from pathlib import Path
 
 from estimator.simulate import SCENARIOS, SimulationError, scenario_config, simulate
 from estimator.simulate.conditions import CONDITIONS, with_condition
-from estimator.simulate.scenarios import get_scenario
+from estimator.simulate.model_scenario import EXCITATION_RAD, model_scenario
+from estimator.simulate.scenarios import Scenario, get_scenario
+
+# the options of --model, by argparse dest
+MODEL_OPTIONS = {
+    "keyframe": "--keyframe",
+    "mocap": "--mocap",
+    "markers": "--markers",
+    "imu": "--imu",
+    "pushes": "--pushes",
+    "excitation": "--excitation",
+}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("scenario", metavar="SCENARIO", help=f"one of: {', '.join(SCENARIOS)}")
+    parser.add_argument(
+        "scenario", nargs="?", metavar="SCENARIO", help=f"one of: {', '.join(SCENARIOS)}"
+    )
+    model = parser.add_argument_group("any MJCF model with a keyframe (instead of SCENARIO)")
+    model.add_argument(
+        "--model", type=Path, metavar="MODEL.xml", help="simulate this model holding a keyframe"
+    )
+    model.add_argument("--keyframe", metavar="NAME", help="the keyframe (default: the first)")
+    model.add_argument(
+        "--mocap",
+        nargs="+",
+        metavar="BODY_OR_SITE",
+        help="mocap poses of these (default: every free-joint body, at its *_marker site)",
+    )
+    model.add_argument(
+        "--markers", nargs="+", default=(), metavar="SITE", help="mocap markers at these sites"
+    )
+    model.add_argument("--imu", metavar="SITE", help="IMU site (default: site 'imu' if any)")
+    model.add_argument("--pushes", metavar="BODY", help="push this body at random")
+    model.add_argument(
+        "--excitation",
+        type=float,
+        metavar="AMPLITUDE",
+        help=f"amplitude of the random joint targets [rad] (default {EXCITATION_RAD})",
+    )
     parser.add_argument("--out", type=Path, required=True, metavar="LOG.mcap", help="output log")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument(
@@ -56,7 +93,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    scenario = get_scenario(args.scenario)
+    scenario = _scenario(args)
     if args.condition is not None:
         if args.condition == "mismatch" and args.no_mismatch:
             raise SimulationError("--condition mismatch contradicts --no-mismatch")
@@ -81,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.quiet and sys.stderr.isatty(),
     )
     if args.config_out is not None:
-        args.config_out.write_text(scenario_config(scenario), encoding="utf-8")
+        args.config_out.write_text(scenario_config(scenario, args.config_out), encoding="utf-8")
     if not args.quiet:
         size = args.out.stat().st_size / 1e6
         print(
@@ -91,6 +128,29 @@ def run(args: argparse.Namespace) -> int:
         if args.config_out is not None:
             print(f"{args.config_out}: config for its sensor topics")
     return 0
+
+
+def _scenario(args: argparse.Namespace) -> Scenario:
+    """The bundled SCENARIO, or the scenario of --model; one of them, and --model's options
+    only with --model."""
+    if args.scenario is not None and args.model is not None:
+        raise SimulationError(f"give SCENARIO ({args.scenario}) or --model, not both")
+    if args.scenario is not None:
+        given = [f for dest, f in MODEL_OPTIONS.items() if getattr(args, dest) not in (None, ())]
+        if given:
+            raise SimulationError(f"{given[0]} applies to --model MODEL.xml, not to a SCENARIO")
+        return get_scenario(args.scenario)
+    if args.model is None:
+        raise SimulationError(f"give a SCENARIO ({', '.join(SCENARIOS)}) or --model MODEL.xml")
+    return model_scenario(
+        args.model,
+        keyframe=args.keyframe,
+        mocap=args.mocap,
+        markers=args.markers,
+        imu=args.imu,
+        pushes=args.pushes,
+        excitation_rad=EXCITATION_RAD if args.excitation is None else args.excitation,
+    )
 
 
 def _check_writable(path: Path, option: str) -> None:

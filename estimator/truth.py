@@ -37,7 +37,9 @@ class StateTopics:
     joint_names:    the JointState's names, in its order (J)
     joints:         (N, J·3) per joint position, velocity, effort (NaN where not given)
     contact_wrench: body → (N, 6) net contact force (3) and torque (3), body frame
-    imu_bias:       IMU name → (N, 6) accelerometer bias (m/s²) then gyro bias (rad/s)
+    imu_bias:       IMU site → (N, 6) accelerometer bias (m/s²) then gyro bias (rad/s); the
+                    site is the header's frame_id (the topic's last part when empty, as in
+                    logs written before topics were named by the site)
     """
 
     path: str
@@ -117,7 +119,8 @@ def read_state_topics(path: str | Path, prefix: str = PREFIX) -> StateTopics:
             wrench.setdefault(name, {})[t] = [f.x, f.y, f.z, tau.x, tau.y, tau.z]
         elif topic.startswith(root + "imu_bias/"):
             a, w = m.accel.linear, m.accel.angular
-            bias.setdefault(name, {})[t] = [a.x, a.y, a.z, w.x, w.y, w.z]
+            site = m.header.frame_id or name
+            bias.setdefault(site, {})[t] = [a.x, a.y, a.z, w.x, w.y, w.z]
     names = tuple(dict.fromkeys(j for row in joints.values() for j in row))
     joint_series = None
     if joints:

@@ -32,6 +32,8 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from estimator.simulate.errors import SimulationError
+
 
 @dataclass(frozen=True)
 class Push:
@@ -162,10 +164,20 @@ def static_feedforward(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray
     scaled to weigh like u (the feet carry the weight; the motors do the rest). B: (nv, nu),
     the actuators' moment arms times gear. `data` must hold mj_forward's results.
     """
-    nv, nu, nefc = model.nv, model.nu, data.nefc
+    nv, nu = model.nv, model.nu
     moment = np.zeros((nu, nv))
     for i in range(nu):
         moment[i, model.jnt_dofadr[model.actuator_trnid[i, 0]]] = model.actuator_gear[i, 0]
+    jac = constraint_jacobian(model, data)
+    scale = 100.0  # N of contact force per unit of ctrl in the least-squares norm
+    system = np.hstack([moment.T, scale * jac.T])
+    solution = np.linalg.lstsq(system, data.qfrc_bias, rcond=None)[0]
+    return solution[:nu]
+
+
+def constraint_jacobian(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
+    """(nefc, nv) dense efc_J of `data` (dense or sparse storage)."""
+    nv, nefc = model.nv, data.nefc
     jac = np.zeros((nefc, nv))
     if nefc:
         if mujoco.mj_isSparse(model):
@@ -174,10 +186,7 @@ def static_feedforward(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray
             )
         else:
             jac[:] = data.efc_J[: nefc * nv].reshape(nefc, nv)
-    scale = 100.0  # N of contact force per unit of ctrl in the least-squares norm
-    system = np.hstack([moment.T, scale * jac.T])
-    solution = np.linalg.lstsq(system, data.qfrc_bias, rcond=None)[0]
-    return solution[:nu]
+    return jac
 
 
 class TrotGait:
@@ -380,3 +389,210 @@ class RandomTorque:
             )
             self.index += 1
         return self.ctrl
+
+
+# -- any model: hold its keyframe (`physfuse simulate --model`) ----------------------------------
+MOTOR, SERVO = "motor", "servo"
+_CONTACT_ROWS = (
+    mujoco.mjtConstraint.mjCNSTR_CONTACT_FRICTIONLESS,
+    mujoco.mjtConstraint.mjCNSTR_CONTACT_PYRAMIDAL,
+    mujoco.mjtConstraint.mjCNSTR_CONTACT_ELLIPTIC,
+    mujoco.mjtConstraint.mjCNSTR_EQUALITY,
+)
+
+
+def actuator_kinds(model: mujoco.MjModel) -> list[str]:
+    """Per actuator MOTOR (fixed gain, no bias: ctrl is a force) or SERVO (fixed gain, affine
+    bias with a stiffness biasprm[1] < 0: ctrl is a target, e.g. a position actuator with
+    biasprm[1] = −gainprm[0] = −kp); SimulationError naming any other actuator."""
+    kinds = []
+    for i in range(model.nu):
+        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, i) or f"#{i}"
+        if model.actuator_dyntype[i] != mujoco.mjtDyn.mjDYN_NONE:
+            dyn = mujoco.mjtDyn(model.actuator_dyntype[i]).name.removeprefix("mjDYN_").lower()
+            raise SimulationError(
+                f"actuator {name!r} has activation dynamics (dyntype {dyn}): only actuators "
+                "without them (motors, position servos) can be driven"
+            )
+        fixed = model.actuator_gaintype[i] == mujoco.mjtGain.mjGAIN_FIXED
+        bias = model.actuator_biastype[i]
+        if fixed and model.actuator_gainprm[i, 0] != 0 and bias == mujoco.mjtBias.mjBIAS_NONE:
+            kinds.append(MOTOR)
+        elif fixed and bias == mujoco.mjtBias.mjBIAS_AFFINE and model.actuator_biasprm[i, 1] < 0:
+            kinds.append(SERVO)
+        else:
+            raise SimulationError(
+                f"actuator {name!r} is neither a motor (fixed gain, no bias) nor a position "
+                "servo (fixed gain, affine bias with biasprm[1] < 0)"
+            )
+    return kinds
+
+
+def holding_forces(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
+    """(nu,) actuator forces that hold the state in `data` still, with its contacts.
+
+    τ = qfrc_inverse + qfrc_constraint of mj_inverse at zero velocity and acceleration (gravity
+    less passive forces), split by least squares over actuator forces F and the contact and
+    equality constraint forces λ: τ = Mᵀ F + Jᵀ λ, λ weighted like `static_feedforward`.
+    M: (nu, nv) actuator moments. Clipped to each actuator's force range.
+    """
+    data.qvel[:] = 0.0
+    data.qacc[:] = 0.0
+    mujoco.mj_inverse(model, data)
+    tau = data.qfrc_inverse + data.qfrc_constraint
+    moment = _moments(model, data)
+    rows = np.isin(data.efc_type[: data.nefc], _CONTACT_ROWS)
+    jac = constraint_jacobian(model, data)[rows]
+    scale = 100.0  # N of constraint force per N (N·m) of actuator force in the norm
+    solution = np.linalg.lstsq(np.hstack([moment.T, scale * jac.T]), tau, rcond=None)[0]
+    force = solution[: model.nu]
+    limited = model.actuator_forcelimited.astype(bool)
+    lo, hi = model.actuator_forcerange.T
+    return np.where(limited, np.clip(force, lo, hi), force)
+
+
+class KeyframeHold:
+    """Any model: hold a keyframe through the model's own actuators, with excitation.
+
+    Each actuator's force is F = g·ctrl + b₀ + b₁·L + b₂·L̇ (gain g, affine bias b, length L):
+      motor  ctrl = (F_ff + kp (L* − L) − kd L̇) / g         our PD on the length
+      servo  ctrl = (F_ff − b₀ − b₁ L*) / g                  its own stiffness −b₁ and damping
+             (a position actuator, b₁ = −g: ctrl = L* + F_ff / kp, a target)
+    clipped to the ctrlrange. F_ff: `holding_forces` at the keyframe. L* = gear · q*: the
+    keyframe's joint angle plus the excitation δ(t) on every actuated hinge (within its
+    range); other transmissions hold the keyframe's length.
+    δ(t) = A·r(t)·Σᵢ aᵢ sin(2π fᵢ t + φᵢ) / Σᵢ aᵢ, three sines per hinge, aᵢ ~ U(0.5, 1),
+    fᵢ ~ U(0.2, 1) Hz, φᵢ ~ U(0, 2π), r a smoothstep from 0 to 1 over `ramp_s`: smooth,
+    random, |δ| ≤ A.
+    Motor gains: kp = m ω², kd = 2 m ω (critically damped), m = r M rᵀ / |r|⁴ the mass
+    matrix M along the actuator's moment r at the keyframe (a joint's M_jj / gear²),
+    ω = min(2π·bandwidth_hz, 0.5/h) to keep the explicit Euler step stable.
+    Balance, for a floating base standing on one or two bodies (a biped): the actuated hinges
+    of those bodies (the ankles) add lean_gain·(a·θ) + rate_gain·(a·θ̇) to their target, with
+    a the joint's axis and θ = ẑ × (c − c_key) / H the lean of the centre of mass c away from
+    the keyframe's, seen from the feet H below it (world frame): the feet move the centre of
+    pressure under a leaning body (the ankle strategy of `hold_keyframe` in
+    physics/models/menagerie/convert.py, on the centre of mass rather than the base's tilt,
+    which the excitation of the legs moves too).
+    """
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        keyframe: int,
+        rng: np.random.Generator,
+        *,
+        excitation_rad: float = 0.1,
+        ramp_s: float = 1.0,
+        bandwidth_hz: float = 10.0,
+        lean_gain: float = 10.0,
+        rate_gain: float = 1.0,
+    ) -> None:
+        self.model = model
+        self.motor = np.array([k == MOTOR for k in actuator_kinds(model)], dtype=bool)
+        data = mujoco.MjData(model)
+        mujoco.mj_resetDataKeyframe(model, data, keyframe)
+        self.u_ff = holding_forces(model, data)  # leaves the keyframe's kinematics in data
+        self.length = data.actuator_length.copy()
+        self.gear = model.actuator_gear[:, 0].copy()
+        self.gain = model.actuator_gainprm[:, 0].copy()
+        self.b0, self.b1 = model.actuator_biasprm[:, 0].copy(), model.actuator_biasprm[:, 1].copy()
+        limited = model.actuator_ctrllimited.astype(bool)
+        self.lo = np.where(limited, model.actuator_ctrlrange[:, 0], -np.inf)
+        self.hi = np.where(limited, model.actuator_ctrlrange[:, 1], np.inf)
+        # actuated hinges: the excitation (and balance) act on their angles
+        on_joint = model.actuator_trntype == mujoco.mjtTrn.mjTRN_JOINT
+        joints = np.where(on_joint, model.actuator_trnid[:, 0], 0)  # 0: not a joint
+        self.hinge = on_joint & (model.jnt_type[joints] == mujoco.mjtJoint.mjJNT_HINGE)
+        self.qadr = model.jnt_qposadr[joints]
+        self.q_key = data.qpos[self.qadr].copy()
+        ranged = self.hinge & model.jnt_limited[joints].astype(bool)
+        self.q_lo = np.where(ranged, model.jnt_range[joints, 0], -np.inf)
+        self.q_hi = np.where(ranged, model.jnt_range[joints, 1], np.inf)
+        # motor gains
+        moment = _moments(model, data)
+        mass = np.zeros((model.nv, model.nv))
+        mujoco.mj_fullM(model, data, mass)
+        r2 = np.maximum(np.sum(moment**2, axis=1), 1e-300)
+        inertia = np.einsum("iu,uv,iv->i", moment, mass, moment) / r2**2
+        omega = min(2.0 * np.pi * bandwidth_hz, 0.5 / float(model.opt.timestep))
+        self.kp, self.kd = inertia * omega**2, 2.0 * inertia * omega
+        # excitation: three sines per actuated hinge
+        shape = (model.nu, 3)
+        self.amplitude, self.ramp_s = excitation_rad, ramp_s
+        self.weights = rng.uniform(0.5, 1.0, shape)
+        self.freqs = rng.uniform(0.2, 1.0, shape)
+        self.phases = rng.uniform(0.0, 2.0 * np.pi, shape)
+        # balance
+        self.lean_gain, self.rate_gain = lean_gain, rate_gain
+        self.root, self.ankles = _biped(model, data, joints, self.hinge)
+        self.axes = data.xaxis[joints[self.ankles]].copy()  # (n, 3) world joint axes
+        self.com_key = data.subtree_com[self.root].copy()
+        floor = np.mean([c.pos[2] for c in data.contact[: data.ncon]]) if data.ncon else 0.0
+        self.height = max(float(self.com_key[2] - floor), 1e-3)
+        self.jac_com = np.zeros((3, model.nv))
+
+    def excitation(self, t: float) -> np.ndarray:
+        """(nu,) δ(t) [rad] (zero on actuators that are not on a hinge)."""
+        s = min(max(t / self.ramp_s, 0.0), 1.0) if self.ramp_s > 0 else 1.0
+        sines = np.sin(2.0 * np.pi * self.freqs * t + self.phases)
+        wave = np.sum(self.weights * sines, axis=1) / np.sum(self.weights, axis=1)
+        return np.where(self.hinge, self.amplitude * s * s * (3.0 - 2.0 * s) * wave, 0.0)
+
+    def targets(self, t: float, data: mujoco.MjData) -> np.ndarray:
+        """(nu,) joint targets q* of the actuated hinges (keyframe + excitation + balance)."""
+        q = self.q_key + self.excitation(t)
+        if self.ankles.any():
+            theta, rate = self._lean(data)
+            q[self.ankles] += self.lean_gain * self.axes @ theta + self.rate_gain * self.axes @ rate
+        return np.clip(q, self.q_lo, self.q_hi)
+
+    def __call__(self, t: float, data: mujoco.MjData) -> np.ndarray:
+        target = np.where(self.hinge, self.gear * self.targets(t, data), self.length)
+        error = target - data.actuator_length
+        force = self.u_ff + self.kp * error - self.kd * data.actuator_velocity
+        ctrl = np.where(self.motor, force, self.u_ff - self.b0 - self.b1 * target) / self.gain
+        return np.clip(ctrl, self.lo, self.hi)
+
+    def _lean(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
+        """θ = ẑ × (c − c_key) / H and its rate (world frame) of the standing body's centre of
+        mass c. `data`: after mj_step1 (subtree_com, its Jacobian)."""
+        mujoco.mj_jacSubtreeCom(self.model, data, self.jac_com, self.root)
+        up = np.array([0.0, 0.0, 1.0])
+        offset = data.subtree_com[self.root] - self.com_key
+        velocity = self.jac_com @ data.qvel
+        return np.cross(up, offset) / self.height, np.cross(up, velocity) / self.height
+
+
+def _moments(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
+    """(nu, nv) dense actuator moment arms of `data` (after its transmission stage)."""
+    moment = np.zeros((model.nu, model.nv))
+    mujoco.mju_sparse2dense(
+        moment, data.actuator_moment, data.moment_rownnz, data.moment_rowadr, data.moment_colind
+    )
+    return moment
+
+
+def _biped(
+    model: mujoco.MjModel, data: mujoco.MjData, joints: np.ndarray, hinge: np.ndarray
+) -> tuple[int, np.ndarray]:
+    """(the standing body's root, a mask (nu,) of its ankle actuators): the actuated hinges
+    of the bodies touching the world at the keyframe when a floating base stands on one or
+    two of them; (0, none) otherwise. `data`: the keyframe after collision detection;
+    joints, hinge: each actuator's joint and whether it is an actuated hinge."""
+    feet = set()
+    for c in data.contact[: data.ncon]:
+        b1, b2 = (int(model.geom_bodyid[g]) for g in (c.geom1, c.geom2))
+        for foot, other in ((b1, b2), (b2, b1)):
+            if model.body_weldid[other] == 0 and model.body_weldid[foot] != 0:
+                feet.add(foot)
+    roots = {int(model.body_rootid[b]) for b in feet}
+    none = np.zeros(model.nu, dtype=bool)
+    if not 1 <= len(feet) <= 2 or len(roots) != 1:
+        return 0, none
+    root = roots.pop()
+    free = int(model.body_jntadr[root])
+    if free < 0 or model.jnt_type[free] != mujoco.mjtJoint.mjJNT_FREE:
+        return 0, none
+    ankles = hinge & np.isin(model.jnt_bodyid[joints], list(feet))
+    return (root, ankles) if ankles.any() else (0, none)

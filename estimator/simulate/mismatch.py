@@ -13,6 +13,12 @@ every quantity positive:
     geom_friction[g, 0] *= exp(σ_μ z_g)   (sliding friction; also explicit pairs' friction)
     softness ε, κ       *= exp(σ_s z_ε), exp(σ_s z_κ)   (κ kept ≥ 2h, MuJoCo's refsafe floor)
 
+The softness is the paper's one (ε, κ) for the whole model (the bundled scenarios), or, with
+`own_softness`, a scale s_ε, s_κ of the model's own per-element values (`physfuse simulate
+--model`): for every solimp d_i = 1/(1 + s_ε ε_i) with ε_i = (1 − d_i)/d_i, for d0 and dwidth;
+for every solref time constant κ_i s_κ (kept ≥ 2h; the direct format (−k, −b): k / s_κ²,
+b / s_κ, as K ∝ 1/κ², B ∝ 1/κ); impratio and everything else stay the model's.
+
 `SignedMismatch` instead sets each factor to exactly 1 ± σ, the sign that of the same draw z
 (the `mismatch` condition of `physfuse simulate`: masses ±10%, friction ±30%).
 
@@ -30,7 +36,7 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from physics.softness import Softness
+from physics.softness import SOLREF_SOLIMP_FIELDS, Softness
 
 
 @dataclass(frozen=True)
@@ -39,7 +45,8 @@ class MismatchRecord:
 
     body_mass: body → (nominal, true) [kg]; body_inertia: body → (nominal (3,), true (3,))
     [kg·m²]; geom_friction: geom (or "pair:<name>") → (nominal, true) sliding coefficient;
-    softness: "eps" / "kappa" → (nominal, true).
+    softness: "eps" / "kappa" → (nominal, true); with own softness "eps_scale" /
+    "kappa_scale" → (1, s).
     """
 
     body_mass: Mapping[str, tuple[float, float]] = field(default_factory=dict)
@@ -90,10 +97,14 @@ class Mismatch:
         model: mujoco.MjModel,
         rng: np.random.Generator,
         softness: Softness | None = None,
-    ) -> tuple[mujoco.MjModel, Softness, MismatchRecord]:
+        *,
+        own_softness: bool = False,
+    ) -> tuple[mujoco.MjModel, Softness | None, MismatchRecord]:
         """A perturbed copy of `model`, the true softness, and the record of both.
 
         softness: the nominal softness (default `Softness()`, what the estimator assumes).
+        own_softness: scale the model's own solref/solimp instead (in the returned model; the
+        true softness returned is then None: the model's own).
         Draws from `rng` in a fixed order (masses, inertias, friction, softness), also when a
         σ is 0, so that changing one σ does not reshuffle the others.
         """
@@ -144,6 +155,16 @@ class Mismatch:
                     float(true.pair_friction[p, 0]),
                 )
 
+        if own_softness:
+            s_eps, s_kappa = (float(self.factor(self.softness_rel_std, z)) for z in z_soft)
+            if (s_eps, s_kappa) != (1.0, 1.0):
+                scale_softness(true, s_eps, s_kappa)
+            soft = {}
+            if self.softness_rel_std:
+                soft = {"eps_scale": (1.0, s_eps), "kappa_scale": (1.0, s_kappa)}
+            mujoco.mj_setConst(true, mujoco.MjData(true))
+            return true, None, MismatchRecord(masses, inertias, frictions, soft)
+
         eps = nominal.eps * float(self.factor(self.softness_rel_std, z_soft[0]))
         kappa = nominal.kappa * float(self.factor(self.softness_rel_std, z_soft[1]))
         kappa = max(kappa, 2.0 * float(model.opt.timestep))
@@ -172,6 +193,25 @@ class SignedMismatch(Mismatch):
     def factor(self, sigma: float, z: np.ndarray | float) -> np.ndarray:
         """1 + σ·sign(z): a perturbation of exactly ±σ (z = 0 counts as +)."""
         return 1.0 + sigma * np.where(np.asarray(z) < 0.0, -1.0, 1.0)
+
+
+def scale_softness(model: mujoco.MjModel, s_eps: float, s_kappa: float) -> None:
+    """Scale every solimp's ε_i = (1 − d_i)/d_i (d0 and dwidth) by s_eps and every solref's
+    time constant κ_i by s_kappa (≥ 2h), in place (the module docstring has the formulas)."""
+    floor = 2.0 * float(model.opt.timestep)
+    fields = [*SOLREF_SOLIMP_FIELDS, ("pair_solreffriction", None)]
+    for ref_name, imp_name in fields:
+        ref = getattr(model, ref_name)
+        if len(ref):
+            timeconst = ref[:, 0] > 0  # (κ, damping ratio); ≤ 0: direct (−k, −b) or unset
+            direct = ref[:, 0] < 0
+            ref[timeconst, 0] = np.maximum(ref[timeconst, 0] * s_kappa, floor)
+            ref[direct, 0] /= s_kappa**2
+            ref[direct, 1] /= s_kappa
+        if imp_name is not None and len(getattr(model, imp_name)):
+            d = getattr(model, imp_name)[:, :2]  # a view: d0, dwidth
+            eps = (1.0 - np.clip(d, 1e-4, 1.0)) / np.clip(d, 1e-4, 1.0)  # MuJoCo's d ≥ 1e-4
+            d[:] = 1.0 / (1.0 + s_eps * eps)
 
 
 def _triangle(moments: np.ndarray) -> bool:

@@ -76,12 +76,16 @@ def no_pushes(rng: np.random.Generator, duration_s: float) -> tuple[Push, ...]:
 class Scenario:
     """Everything that defines a simulated recording except the seed.
 
-    name: the CLI name. model: bundled model name. duration_s: default length [s].
+    name: the CLI name. model: bundled model name or MJCF path. duration_s: default length [s].
     controller: builds the controller from the nominal model (it never sees the mismatch).
     pushes: draws the external pushes. sensors: in the order they draw random numbers.
-    mismatch: how the simulated robot differs from the model. keyframe: the initial state.
-    ground_truth_decimation: write ground truth every this many steps (1: every step).
-    condition: the `conditions.CONDITIONS` name this variant was made under (None: as defined).
+    mismatch: how the simulated robot differs from the model. keyframe: the initial state
+    (name, or index). ground_truth_decimation: write ground truth every this many steps
+    (1: every step). condition: the `conditions.CONDITIONS` name this variant was made under
+    (None: as defined). own_softness: the mismatch scales the model's own solref/solimp
+    (False: the paper's one softness, `Softness()`, perturbed and written everywhere).
+    command: the `physfuse simulate` arguments that make it ("": the name). settings: more
+    `physfuse.simulation` metadata.
     """
 
     name: str
@@ -92,9 +96,12 @@ class Scenario:
     sensors: tuple[Sensor, ...]
     pushes: PushFactory = no_pushes
     mismatch: Mismatch = field(default_factory=Mismatch)
-    keyframe: str = "home"
+    keyframe: str | int = "home"
     ground_truth_decimation: int = 1
     condition: str | None = None
+    own_softness: bool = False
+    command: str = ""
+    settings: Mapping[str, str] = field(default_factory=dict)
 
     def topics(self) -> dict[str, str]:
         """Sensor topic → message type."""

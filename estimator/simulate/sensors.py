@@ -72,6 +72,7 @@ class Trajectory:
     sensordata_acc (N, nsensordata): after each step's constraint solve (acceleration stage
         valid too: accelerometer, force, torque, touch).
     ctrl (N, nu): controls applied during each step. qfrc_actuator (N, nv): their forces.
+    body_xpos (N+1, nbody, 3) [m], body_xquat (N+1, nbody, 4) (w, x, y, z): body frames, world.
     """
 
     model: mujoco.MjModel
@@ -85,6 +86,8 @@ class Trajectory:
     sensordata_acc: np.ndarray
     ctrl: np.ndarray
     qfrc_actuator: np.ndarray
+    body_xpos: np.ndarray
+    body_xquat: np.ndarray
 
     @property
     def steps(self) -> int:
@@ -373,7 +376,7 @@ class Sensor(Protocol):
         ...
 
 
-def _site_ids(model: mujoco.MjModel, sites: Sequence[str], what: str) -> np.ndarray:
+def site_ids(model: mujoco.MjModel, sites: Sequence[str], what: str) -> np.ndarray:
     ids = []
     for site in sites:
         i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site)
@@ -388,9 +391,17 @@ def _site_ids(model: mujoco.MjModel, sites: Sequence[str], what: str) -> np.ndar
     return np.array(ids, dtype=np.int64)
 
 
+def _body_ids(model: mujoco.MjModel, bodies: Sequence[str], what: str) -> np.ndarray:
+    ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body) for body in bodies]
+    for body, i in zip(bodies, ids, strict=True):
+        if i < 0:
+            raise SimulationError(f"{what}: the model has no body {body!r}")
+    return np.array(ids, dtype=np.int64)
+
+
 def _site_sensor(model: mujoco.MjModel, site: str, kind: int, what: str) -> slice:
     """sensordata slice of the model sensor of type `kind` mounted at `site`."""
-    site_id = _site_ids(model, [site], what)[0]
+    site_id = site_ids(model, [site], what)[0]
     for s in range(model.nsensor):
         if (
             model.sensor_type[s] == kind
@@ -431,15 +442,17 @@ def _occluded(times_s: np.ndarray, intervals: np.ndarray) -> np.ndarray:
 class MocapPoses:
     """Rigid-body poses from motion capture, one PoseStamped topic per body (vrpn_mocap style).
 
-    bodies: rigid-body label → model site whose frame the mocap system tracks. Topics are
-    `topic_format.format(label)`. All bodies share the frame times, stamps and delivery of
-    one mocap system; dropouts and outliers are per body.
+    bodies: rigid-body label → model site whose frame the mocap system tracks (for the labels
+    in `body_labels`: model body, its frame). Topics are `topic_format.format(label)`. All
+    bodies share the frame times, stamps and delivery of one mocap system; dropouts and
+    outliers are per body.
     """
 
     bodies: Mapping[str, str]
     noise: MocapNoise = MocapNoise()
     topic_format: str = "/mocap/{}/pose"
     name: str = "mocap"
+    body_labels: tuple[str, ...] = ()
 
     def topic(self, label: str) -> str:
         return self.topic_format.format(label)
@@ -453,7 +466,7 @@ class MocapPoses:
             f"{self.name}_{label}": {
                 "type": "pose",
                 "topic": self.topic(label),
-                "site": site,
+                ("body" if label in self.body_labels else "site"): site,
                 "time_offset_ns": -n.clock.offset_ns,
                 "noise": _noise_table(
                     position_std_m=n.position_std_m, orientation_std_rad=n.orientation_std_rad
@@ -468,12 +481,21 @@ class MocapPoses:
     def sample(self, traj: Trajectory, rng: np.random.Generator) -> SensorOutput:
         n = self.noise
         labels = list(self.bodies)
-        sites = _site_ids(traj.model, list(self.bodies.values()), self.name)
+        frames = []  # per label: (N+1, 3) positions and (N+1, 4) orientations
+        for label, target in self.bodies.items():
+            if label in self.body_labels:
+                b = _body_ids(traj.model, [target], self.name)[0]
+                frames.append((traj.body_xpos[:, b], traj.body_xquat[:, b]))
+            else:
+                i = site_ids(traj.model, [target], self.name)[0]
+                frames.append((traj.site_xpos[:, i], traj.site_xquat[:, i]))
+        xpos = np.stack([p for p, _ in frames], axis=1)
+        xquat = np.stack([q for _, q in frames], axis=1)
         t = sample_times(n.rate_hz, traj.duration_ns, rng)
         stamps = n.clock.stamps(t, NS / n.rate_hz, rng)
         log_times = n.clock.log_times(t, rng)
-        true_pos = traj.interpolate(traj.site_xpos[:, sites], t)  # (n, B, 3)
-        true_quat = traj.slerp(traj.site_xquat[:, sites], t)  # (n, B, 4)
+        true_pos = traj.interpolate(xpos, t)  # (n, B, 3)
+        true_quat = traj.slerp(xquat, t)  # (n, B, 4)
         shape = (len(t), len(labels))
         pos = true_pos + n.position_std_m * rng.standard_normal((*shape, 3))
         quat = quat_mul(
@@ -552,7 +574,7 @@ class MocapMarkers:
 
     def sample(self, traj: Trajectory, rng: np.random.Generator) -> SensorOutput:
         n = self.noise
-        sites = _site_ids(traj.model, self.markers, self.name)
+        sites = site_ids(traj.model, self.markers, self.name)
         t = sample_times(n.rate_hz, traj.duration_ns, rng)
         stamps = n.clock.stamps(t, NS / n.rate_hz, rng)
         log_times = n.clock.log_times(t, rng)
@@ -653,7 +675,7 @@ class Imu:
         m = traj.model
         gyro_adr = _site_sensor(m, self.site, mujoco.mjtSensor.mjSENS_GYRO, self.name)
         accel_adr = _site_sensor(m, self.site, mujoco.mjtSensor.mjSENS_ACCELEROMETER, self.name)
-        site = _site_ids(m, [self.site], self.name)[0]
+        site = site_ids(m, [self.site], self.name)[0]
         t = sample_times(n.rate_hz, traj.duration_ns, rng)
         stamps = n.clock.stamps(t, NS / n.rate_hz, rng)
         log_times = n.clock.log_times(t, rng)

@@ -5,7 +5,8 @@
 1. One `numpy.random.default_rng(seed)` feeds everything, in a fixed order: the model
    mismatch, the controller, the pushes, then each sensor in turn.
 2. The mismatch-perturbed model (with its true softness written in by
-   `physics.dynamics.make_dynamics`) is stepped with `mj_step1` / control / `mj_step2`:
+   `physics.dynamics.make_dynamics`, or, for a scenario with `own_softness`, its own
+   solref/solimp scaled by the mismatch) is stepped with `mj_step1` / control / `mj_step2`:
    MuJoCo's semi-implicit Euler step with elliptic cones at the model's timestep, its Newton
    solver run to convergence (tolerance 0), so that the inverse below reproduces the applied
    forces to ~1e-12.
@@ -13,8 +14,9 @@
    native analytic inverse of (q_k, v_k, (v_{k+1} − v_k)/h) on the true model — its
    qfrc_inverse is the joints' effort, its impulses the contacts and contact wrenches
    (`writer.write_state` layout under `/ground_truth`). Its time is the true time; so is its
-   log_time. Each IMU's true biases go to `/ground_truth/imu_bias/<sensor name>` at its
-   sample times.
+   log_time. Each IMU's true biases go to `/ground_truth/imu_bias/<site>` at its sample
+   times. An IMU site without a gyro and an accelerometer in the model gets them (for
+   the simulator to read; they change no dynamics).
 4. Sensors sample the trajectory (`sensors.py`); all messages are written in receive-time
    order, like a recorder, with metadata records `physfuse.simulation`,
    `physfuse.mismatch`, `physfuse.sensors` and `physfuse.ground_truth` (and, under a
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -40,7 +43,7 @@ from estimator.simulate.controllers import Push, apply_pushes
 from estimator.simulate.errors import SimulationError
 from estimator.simulate.mismatch import Mismatch, MismatchRecord
 from estimator.simulate.scenarios import Controller, Scenario, get_scenario
-from estimator.simulate.sensors import NS, Imu, Trajectory
+from estimator.simulate.sensors import NS, Imu, Trajectory, site_ids
 from estimator.simulate.writer import (
     Message,
     Ros2Writer,
@@ -50,7 +53,7 @@ from estimator.simulate.writer import (
     state_messages,
 )
 from physics.dynamics import Dynamics, make_dynamics
-from physics.model import load_model
+from physics.model import load_model, model_path
 from physics.softness import Softness
 
 T0_NS = 1_700_000_000 * NS  # the epoch of every simulated log: 2023-11-14T22:13:20Z
@@ -69,7 +72,7 @@ GROUND_TRUTH_DEFINITIONS = {
     "torque of its contacts over step k (impulse / h), in the body frame, about the body origin",
     "contacts": "physfuse_msgs/ContactArray: every contact of step k from the same inverse "
     "(impulse in the contact frame, force = impulse / h, Algorithm 5 branch)",
-    "imu_bias": "geometry_msgs/AccelStamped per IMU (topic .../imu_bias/<sensor name>), at the "
+    "imu_bias": "geometry_msgs/AccelStamped per IMU (topic .../imu_bias/<site>), at the "
     "IMU's true sample times: accel.linear = accelerometer bias [m/s^2], accel.angular = gyro "
     "bias [rad/s], in the frame of the IMU's model site (header.frame_id; the sensor axes "
     "turned by quat_site_sensor, as the estimator reads the IMU)",
@@ -80,7 +83,8 @@ GROUND_TRUTH_DEFINITIONS = {
 class SimulationResult:
     """What `simulate` did: the true motion and the truth behind every sensor message.
 
-    trajectory: the true motion (`Trajectory`). true_softness: the simulated contact softness.
+    trajectory: the true motion (`Trajectory`). true_softness: the simulated contact softness
+    (None: the model's own, scaled by the mismatch: `mismatch.softness`).
     mismatch: nominal vs true model values. pushes: the external pushes.
     sensors: sensor name → its `SensorOutput.truth` (true values, biases, dropouts, ...).
     topics: topic → message type of everything written. message_count: messages written.
@@ -90,7 +94,7 @@ class SimulationResult:
     seed: int
     duration_s: float
     trajectory: Trajectory
-    true_softness: Softness
+    true_softness: Softness | None
     mismatch: MismatchRecord
     pushes: tuple[Push, ...]
     sensors: dict[str, dict[str, Any]]
@@ -134,8 +138,10 @@ def simulate(
         scenario = replace(scenario, mismatch=Mismatch.none())
     rng = np.random.default_rng(seed)
 
-    nominal = load_model(scenario.model)
-    true_model, true_softness, record = scenario.mismatch.apply(nominal, rng)
+    nominal = _simulation_model(scenario)
+    true_model, true_softness, record = scenario.mismatch.apply(
+        nominal, rng, own_softness=scenario.own_softness
+    )
     dyn = make_dynamics(true_model, "native", softness=true_softness)
     # Newton to machine precision: the forward step and the analytic inverse then agree to
     # ~1e-12 in generalized force (at MuJoCo's default tolerance 1e-8 they can differ by 1e-4)
@@ -194,7 +200,9 @@ def _run(
     h = float(m.opt.timestep)
     steps = max(1, round(duration_s / h))
     d = mujoco.MjData(m)
-    key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, scenario.keyframe)
+    key = scenario.keyframe
+    if isinstance(key, str):
+        key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, key)
     if key >= 0:
         mujoco.mj_resetDataKeyframe(m, d, key)
     qpos = np.zeros((steps + 1, m.nq))
@@ -205,6 +213,8 @@ def _run(
     sensordata_acc = np.zeros((steps, m.nsensordata))
     ctrl = np.zeros((steps, m.nu))
     qfrc_actuator = np.zeros((steps, m.nv))
+    body_xpos = np.zeros((steps + 1, m.nbody, 3))
+    body_xquat = np.zeros((steps + 1, m.nbody, 4))
     bar = tqdm(total=steps, desc=f"simulate {scenario.name}", unit="step", disable=not progress)
     with bar:
         for k in range(steps + 1):
@@ -215,6 +225,7 @@ def _run(
                 )
             qpos[k], qvel[k] = d.qpos, d.qvel
             site_xpos[k], site_xmat[k] = d.site_xpos, d.site_xmat
+            body_xpos[k], body_xquat[k] = d.xpos, d.xquat
             sensordata_vel[k] = d.sensordata
             if k == steps:
                 break
@@ -238,6 +249,47 @@ def _run(
         sensordata_acc=sensordata_acc,
         ctrl=ctrl,
         qfrc_actuator=qfrc_actuator,
+        body_xpos=body_xpos,
+        body_xquat=body_xquat,
+    )
+
+
+def _simulation_model(scenario: Scenario) -> mujoco.MjModel:
+    """The scenario's model, with a gyro and an accelerometer added at each IMU site that
+    lacks them (the IMU reads them; sensors change no dynamics)."""
+    model = load_model(scenario.model)
+    imus = [s for s in scenario.sensors if isinstance(s, Imu)]
+    for imu in imus:
+        site_ids(model, [imu.site], imu.name)  # SimulationError naming the model's sites
+    kinds = (mujoco.mjtSensor.mjSENS_GYRO, mujoco.mjtSensor.mjSENS_ACCELEROMETER)
+    missing = [
+        (imu.site, kind)
+        for imu in imus
+        for kind in kinds
+        if not _has_site_sensor(model, imu.site, kind)
+    ]
+    if not missing:
+        return model
+    spec = mujoco.MjSpec.from_file(str(model_path(scenario.model)))
+    for site, kind in missing:
+        sensor = spec.add_sensor()
+        sensor.name = f"physfuse/{site}/{mujoco.mjtSensor(kind).name}"
+        sensor.type = kind
+        sensor.objtype = mujoco.mjtObj.mjOBJ_SITE
+        sensor.objname = site
+    try:
+        return spec.compile()
+    except ValueError as err:
+        raise SimulationError(f"{scenario.model}: cannot add the IMU sensors: {err}") from err
+
+
+def _has_site_sensor(model: mujoco.MjModel, site: str, kind: int) -> bool:
+    site_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, site)
+    return any(
+        model.sensor_type[s] == kind
+        and model.sensor_objtype[s] == mujoco.mjtObj.mjOBJ_SITE
+        and model.sensor_objid[s] == site_id
+        for s in range(model.nsensor)
     )
 
 
@@ -270,7 +322,7 @@ def _ground_truth(
 
 
 def _imu_bias_messages(imu: Imu, truth: dict[str, Any], t0_ns: int) -> list[Message]:
-    """`/ground_truth/imu_bias/<name>`: the true biases at each sample, in the site frame."""
+    """`/ground_truth/imu_bias/<site>`: the true biases at each sample, in the site frame."""
     site_from_sensor = Rotation.from_quat(imu.noise.quat_site_sensor, scalar_first=True)
     bias = np.hstack(
         [site_from_sensor.apply(truth["accel_bias"]), site_from_sensor.apply(truth["gyro_bias"])]
@@ -287,7 +339,7 @@ def _metadata(
     duration_s: float,
     traj: Trajectory,
     record: MismatchRecord,
-    softness: Softness,
+    softness: Softness | None,
     pushes: Iterable[Push],
 ) -> dict[str, dict[str, str]]:
     """The MCAP metadata records (name → string pairs; structured values as JSON)."""
@@ -300,15 +352,19 @@ def _metadata(
         "timestep_s": repr(traj.h),
         "steps": str(traj.steps),
         "start_time_ns": str(traj.t0_ns),
-        "keyframe": scenario.keyframe,
+        "keyframe": str(scenario.keyframe),
         "ground_truth_decimation": str(scenario.ground_truth_decimation),
         "pushes": json.dumps([p.as_dict() for p in pushes]),
         "mismatch": json.dumps(asdict(scenario.mismatch)),
         "solver": "newton, tolerance 0 (converged), elliptic cones, Euler",
+        **scenario.settings,
     }
-    mismatch = record.metadata() | {
-        "true_softness": json.dumps({"eps": softness.eps, "kappa": softness.kappa})
-    }
+    true_softness = (
+        json.dumps({"eps": softness.eps, "kappa": softness.kappa})
+        if softness is not None
+        else "the model's own solref/solimp, scaled (softness: eps_scale, kappa_scale)"
+    )
+    mismatch = record.metadata() | {"true_softness": true_softness}
     sensors = {s.name: json.dumps(s.settings()) for s in scenario.sensors}
     return {
         "physfuse.simulation": simulation,
@@ -332,19 +388,26 @@ def _condition_metadata(condition: str, truths: dict[str, dict[str, Any]]) -> di
 
 
 # -- the scenario's config -----------------------------------------------------------------------
-def scenario_config(scenario: Scenario | str) -> str:
+def scenario_config(scenario: Scenario | str, path: str | Path | None = None) -> str:
     """The config TOML (estimator/config.py schema) that maps the scenario's sensor topics
-    onto its model, with the sensors' noise levels and the clock offsets to undo."""
+    onto its model, with the sensors' noise levels and the clock offsets to undo.
+
+    path: where the config will be written; a model file is then named relative to its
+    folder (as the config is read), else as the scenario names it."""
     scenario = get_scenario(scenario) if isinstance(scenario, str) else scenario
     model = load_model(scenario.model)
-    command = scenario.name
+    model_value = scenario.model
+    if path is not None and scenario.model.endswith(".xml"):
+        folder = Path(path).resolve().parent
+        model_value = os.path.relpath(Path(scenario.model).resolve(), folder)
+    command = scenario.command or scenario.name
     if scenario.condition is not None:
         command += f" --condition {scenario.condition}"
     lines = [
         f"# Generated by `physfuse simulate {command} --config-out ...`: the sensor",
         "# topics of the simulated log mapped onto the model. time_offset_ns undoes each",
         "# sensor's clock offset (commands: the transport latency).",
-        f"model = {_toml(scenario.model)}",
+        f"model = {_toml(Path(model_value).as_posix())}",
         f"description = {_toml(f'simulated: {scenario.description}')}",
     ]
     for name, table in scenario.config_streams(model).items():

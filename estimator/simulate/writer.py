@@ -14,8 +14,7 @@ ground truth (prefix `/ground_truth`) and the estimator for its estimates (prefi
     {prefix}/joint_states          sensor_msgs/msg/JointState      (hinge and slide joints)
     {prefix}/contact_wrench/<body> geometry_msgs/msg/WrenchStamped body that can touch anything
     {prefix}/contacts              physfuse_msgs/msg/ContactArray  (every contact of the step)
-    {prefix}/imu_bias/<imu>        geometry_msgs/msg/AccelStamped  IMU (estimate: stream name;
-                                                                   truth: sensor name)
+    {prefix}/imu_bias/<site>       geometry_msgs/msg/AccelStamped  IMU, by its model site
 
 - Odometry: header.frame_id "world", child_frame_id the body name; pose = the body frame in
   the world; twist = linear velocity of the body origin and angular velocity, both in the
@@ -34,7 +33,9 @@ ground truth (prefix `/ground_truth`) and the estimator for its estimates (prefi
 - AccelStamped (IMU bias): accel.linear = accelerometer bias [m/s²], accel.angular = gyro
   bias [rad/s], in the frame of the IMU's model site (header.frame_id): the frame in which
   the estimator compares the IMU with MuJoCo's sensors (measured = true + bias). The
-  simulator writes it at the IMU's sample times, the estimator at its knots.
+  simulator writes it at the IMU's sample times, the estimator at its knots. The topic is
+  named by that site, which both know (the estimator's stream and the simulator's sensor
+  may be named differently), so that estimate and truth share it.
 """
 
 from __future__ import annotations
@@ -442,13 +443,14 @@ def state_messages(
 
 
 def imu_bias_message(prefix: str, imu: str, t_ns: int, frame_id: str, bias: np.ndarray) -> Message:
-    """`{prefix}/imu_bias/<imu>` at t_ns: bias (6,) = accelerometer (m/s²) then gyro (rad/s)
-    bias, in the IMU site's frame `frame_id`."""
+    """`{prefix}/imu_bias/<site>` at t_ns: bias (6,) = accelerometer (m/s²) then gyro (rad/s)
+    bias, in the frame of the IMU's site `frame_id`, which names the topic (the IMU's name
+    `imu` when no site is given)."""
     fields = {
         "header": header(t_ns, frame_id),
         "accel": {"linear": vector3(bias[:3]), "angular": vector3(bias[3:6])},
     }
-    return Message(f"{prefix}/imu_bias/{imu}", ACCEL_STAMPED, t_ns, fields)
+    return Message(f"{prefix}/imu_bias/{frame_id or imu}", ACCEL_STAMPED, t_ns, fields)
 
 
 def write_state(
