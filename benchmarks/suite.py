@@ -80,6 +80,7 @@ METRICS: Mapping[str, tuple[str, bool]] = {
     "contact_recall": ("c.rec", False),
     "imu_accel_bias_mps2": ("ba m/s²", True),
     "imu_gyro_bias_dps": ("bg °/s", True),
+    "position_anees": ("ANEES", True),  # eᵀΣ⁻¹e/3 of the position: 1 when honest
     "wall_over_duration": ("wall/T", True),
 }
 # the same errors while mocap was occluded (`physfuse evaluate`: a body's pose and twist over
@@ -711,7 +712,8 @@ def plot(runs: Sequence[Run], out: Path) -> list[Path]:
         axes[0, 0].set_ylabel(label)
         handles = [Patch(color=colors[m], label=m) for m in methods]
         better = "lower" if lower_is_better else "higher"
-        fig.suptitle(f"{metric} ({better} is better; × failed)", fontsize=10)
+        better = "1 is honest" if metric == "position_anees" else f"{better} is better"
+        fig.suptitle(f"{metric} ({better}; × failed)", fontsize=10)
         fig.legend(handles=handles, loc="lower center", ncols=len(methods), fontsize=8)
         fig.tight_layout(rect=(0.0, 0.06, 1.0, 1.0))
         path = out / f"{metric}.png"

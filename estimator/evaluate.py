@@ -46,6 +46,7 @@ SUMMARY_KEYS = (
     "imu_gyro_bias_dps",
     *OCCLUDED_KEYS,
     "occluded_s",
+    "position_anees",
 )
 
 
@@ -170,6 +171,7 @@ def compare_states(
     pooled: dict[str, list[np.ndarray]] = {k: [] for k in ("pos", "rot", "lin", "ang")}
     occluded: dict[str, list[np.ndarray]] = {k: [] for k in pooled}
     spans: list[np.ndarray] = []  # every body's occlusions within its matched knots
+    pooled_nees: list[np.ndarray] = []
     bodies = {}
     for body, t, e, g in _matched_by_name(est.odometry, truth.odometry, trim):
         errors = {
@@ -180,7 +182,15 @@ def compare_states(
         }
         for key, value in errors.items():
             pooled[key].append(value)
-        bodies[body] = _body_metrics(errors) | {"knots": len(t)}
+        covariance = (  # the odometry's position covariance, when it carries one
+            e[:, 13:22].reshape(-1, 3, 3) if e.shape[1] >= 22 else np.full((len(e), 3, 3), np.nan)
+        )
+        nees = position_nees(errors["pos"], covariance)
+        pooled_nees.append(nees)
+        bodies[body] = _body_metrics(errors) | {
+            "knots": len(t),
+            "position_anees": _mean_or_nan(nees),
+        }
         if occlusions is not None and body in occlusions:
             span = intersect_intervals(occlusions[body], np.array([[t[0], t[-1]]]))
             hidden = within(t, span)
@@ -246,6 +256,7 @@ def compare_states(
         "imu_gyro_bias_dps": float(np.degrees(rmse(pool(bias_errors["gyro"])))),
         **{f"occluded_{k}": occluded_errors[k] for k in (*TRAJECTORY_KEYS, *FORCE_KEYS)},
         "occluded_s": _total_s(spans) if occlusions is not None else float("nan"),
+        "position_anees": _mean_or_nan(pool(pooled_nees)),
     }
     return {
         "summary": summary,
@@ -255,6 +266,24 @@ def compare_states(
         "contact_threshold_N": CONTACT_WEIGHT_FRACTION * weight,
         "imu_bias": imu,
     }
+
+
+def position_nees(errors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """(N,) normalized estimation error squared per dof, eᵀ Σ⁻¹ e / 3, of position errors
+    (N, 3) with the estimate's covariances (N, 3, 3); NaN where there is none (a method
+    without covariances, an unmeasured knot). 1 on average when the covariance is honest."""
+    out = np.full(len(errors), np.nan)
+    ok = np.all(np.isfinite(covariance), axis=(1, 2)) & np.all(np.isfinite(errors), axis=1)
+    ok[ok] = np.linalg.det(covariance[ok]) > 0
+    if ok.any():
+        solved = np.linalg.solve(covariance[ok], errors[ok][:, :, None])[:, :, 0]
+        out[ok] = np.sum(errors[ok] * solved, axis=1) / 3.0
+    return out
+
+
+def _mean_or_nan(values: np.ndarray) -> float:
+    finite = values[np.isfinite(values)] if values.size else values
+    return float(np.mean(finite)) if finite.size else float("nan")
 
 
 def _body_metrics(errors: Mapping[str, np.ndarray]) -> dict[str, float]:

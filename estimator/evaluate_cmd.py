@@ -252,7 +252,7 @@ def states_from_qpos(model: mujoco.MjModel, t_ns: np.ndarray, qpos: np.ndarray) 
         for j in free:
             body = int(model.jnt_bodyid[j])
             twist = body_twist(model, data, body)
-            row = np.r_[data.xpos[body], data.xquat[body], twist[3:], twist[:3]]
+            row = np.r_[data.xpos[body], data.xquat[body], twist[3:], twist[:3], np.full(9, np.nan)]
             odometry[mujoco.mj_id2name(model, _OBJ.mjOBJ_BODY, body)].append(row)
     joints = np.stack(
         [qpos[:, model.jnt_qposadr[scalar]], qvel[:, model.jnt_dofadr[scalar]]], axis=2

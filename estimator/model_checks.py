@@ -204,13 +204,15 @@ class CommandCheck:
     correlation: float  # of effort and commanded force (about zero)
     residual_rms: float  # of effort − commanded
     clamped: float  # fraction of samples where MuJoCo clamped the force at forcerange
-    effort_std: float = 0.0  # the effort's noise σ (config)
+    # σ of effort − commanded force from the encoder's noise: the effort's, and the position
+    # and velocity noise through the actuator's stiffness and damping (kp σ_q, kv σ_q̇)
+    noise_std: float = 0.0
 
     @property
     def problem(self) -> str | None:
         """What looks wrong, or None: effort and commanded force apart by more than half the
-        effort's RMS and 3σ of its noise."""
-        if self.residual_rms <= max(0.5 * self.effort_rms, 3 * self.effort_std, 1e-12):
+        effort's RMS and 3σ of the encoder's noise."""
+        if self.residual_rms <= max(0.5 * self.effort_rms, 3 * self.noise_std, 1e-12):
             return None
         if self.correlation < -0.9:
             return f"opposite sign (effort ≈ {self.gain:.2g} × the commands' force)"
@@ -226,12 +228,17 @@ class CommandCheck:
 
 
 def command_effort_checks(
-    model: mujoco.MjModel, measurements: Mapping[str, Measurement], effort_std: float = 0.0
+    model: mujoco.MjModel,
+    measurements: Mapping[str, Measurement],
+    noise: Mapping[str, float] | None = None,
 ) -> list[CommandCheck]:
     """For every actuator with logged commands that drives one hinge or slide whose encoder
     logs effort: the force of the commands (zero-order hold) at the logged joint states
-    (positions, velocities) through MuJoCo's actuation, against that effort (noise σ
-    effort_std)."""
+    (positions, velocities) through MuJoCo's actuation, against that effort. noise: the
+    encoder stream's σ (position_std, velocity_std, effort_std)."""
+    noise = noise or {}
+    sigma_q, sigma_v = noise.get("position_std", 0.0), noise.get("velocity_std", 0.0)
+    sigma_effort = noise.get("effort_std", 0.0)
     encoders = [m for m in measurements.values() if m.kind == "joint_state" and len(m)]
     commands = [m for m in measurements.values() if m.kind == "command" and len(m)]
     if not encoders or not commands:
@@ -261,7 +268,7 @@ def command_effort_checks(
         use = np.isfinite(ctrl[:, a]) & np.isfinite(effort[:, e]) & np.isfinite(position[:, e])
         if use.sum() < 3:
             continue
-        commanded, clamped = [], 0
+        commanded, clamped, stiffness, damping = [], 0, 0.0, 0.0
         only = np.full(model.nu, np.nan)
         for k in np.flatnonzero(use):
             data.qpos[model.jnt_qposadr[j]] = position[k, e]
@@ -269,7 +276,11 @@ def command_effort_checks(
             mujoco.mj_fwdPosition(model, data)
             mujoco.mj_fwdVelocity(model, data)
             only[a] = ctrl[k, a]
-            commanded.append(commanded_force(model, data, only)[0][model.jnt_dofadr[j]])
+            dof = model.jnt_dofadr[j]
+            qfrc, dq, dv = commanded_force(model, data, only, jacobians=True)
+            commanded.append(qfrc[dof])
+            assert dq is not None and dv is not None
+            stiffness, damping = max(stiffness, abs(dq[dof, dof])), max(damping, abs(dv[dof, dof]))
             low, high = model.actuator_forcerange[a]
             f = data.actuator_force[a]
             clamped += bool(model.actuator_forcelimited[a] and (f <= low or f >= high))
@@ -287,7 +298,9 @@ def command_effort_checks(
                 correlation=float(c @ y) / norms if norms > 0 else 0.0,
                 residual_rms=_rms(y - c),
                 clamped=clamped / max(int(use.sum()), 1),
-                effort_std=effort_std,
+                noise_std=float(
+                    np.hypot(np.hypot(sigma_effort, stiffness * sigma_q), damping * sigma_v)
+                ),
             )
         )
     return checks
@@ -317,6 +330,6 @@ def command_warnings(checks: list[CommandCheck]) -> list[str]:
 def commands_against_efforts(
     config: Config, model: mujoco.MjModel, measurements: Mapping[str, Measurement]
 ) -> list[CommandCheck]:
-    """`command_effort_checks` with the effort noise σ of the config's encoder stream."""
-    stds = [s.noise["effort_std"] for s in config.streams.values() if s.kind == "joint_state"]
-    return command_effort_checks(model, measurements, stds[0] if stds else 0.0)
+    """`command_effort_checks` with the noise σ of the config's encoder stream."""
+    noises = [s.noise for s in config.streams.values() if s.kind == "joint_state"]
+    return command_effort_checks(model, measurements, noises[0] if noises else None)

@@ -113,6 +113,15 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
         None,
         "κ in s replacing every solref of the model (eq. 28; ≥ 2h); unset: the model's own solref",
     ),
+    "model_softness_std": (
+        0.1,
+        "relative σ of the model's contact softness (ε and κ), which the covariances account "
+        "for (consider covariance; 0: the model's softness taken as exact)",
+    ),
+    "model_mass_std": (
+        0.05,
+        "relative σ of the model's masses, which the covariances account for (0: exact)",
+    ),
     "bias_prior_accel": (0.5, "σ of the first accelerometer bias, m/s²"),
     "bias_prior_gyro": (0.05, "σ of the first gyro bias, rad/s"),
     "fd_eps": (1e-6, "finite-difference step of mjd_inverseFD"),
@@ -159,6 +168,8 @@ class Settings:
     # the model's own contact softness unless set (an override of every element's)
     softness_eps: float | None = None
     softness_kappa: float | None = None
+    model_softness_std: float = 0.1
+    model_mass_std: float = 0.05
     bias_prior_accel: float = 0.5
     bias_prior_gyro: float = 0.05
     fd_eps: float = 1e-6

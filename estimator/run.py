@@ -146,7 +146,7 @@ def smooth(
         # "best": the solution of lower cost; its covariance alone
         kept = min(solved, key=lambda name: solved[name].cost_final)
         kept_starts.append(kept)
-        result = with_covariance(solved[kept], range(keep_from - s, keep_to - s))
+        result = with_covariance(solved[kept], range(keep_from - s, keep_to - s), problem)
         qpos[keep_from:keep_to] = result.qpos[keep_from - s : keep_to - s]
         bias[keep_from:keep_to] = result.bias[keep_from - s : keep_to - s]
         std[keep_from:keep_to] = result.qpos_std[keep_from - s : keep_to - s]

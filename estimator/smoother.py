@@ -18,11 +18,13 @@ also avoids GTSAM's CustomFactor path, which copies the whole Values on every ca
 
 from __future__ import annotations
 
+import copy
 import queue
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import gtsam
+import mujoco
 import numpy as np
 import scipy.linalg
 
@@ -39,6 +41,7 @@ from estimator.problem import (
     retract,
     velocities,
 )
+from physics.softness import SOLREF_SOLIMP_FIELDS
 
 THREADS = 2
 LAMBDA_MIN = 1e-9  # Levenberg–Marquardt's least damping, and its first
@@ -58,8 +61,13 @@ class WindowResult:
     warnings: list[str]
     linearizations: int = 0  # MuJoCo passes with Jacobians (mjd_inverseFD at every knot)
     evaluations: int = 0  # passes without (mj_inverse at every knot)
-    # the last linearization (at the solution, or one step below the tolerance before it)
+    # the last linearization (at the solution, or one step below the tolerance before it),
+    # its rows' σ scaled to what the residuals show (`honest`): the covariances' system
     system: BandedSystem | None = None
+    # that linearization as solved (unscaled) and its physics rows, for the sensitivity of
+    # the estimate to the model's parameters (`consider_variance`)
+    solved_system: BandedSystem | None = None
+    physics: Block | None = None
 
 
 @dataclass
@@ -558,19 +566,23 @@ class BandedSystem:
         """(T, nv) marginal standard deviations of x_k at `keys` (default: all; NaN at the
         others), by GTSAM's Marginals of this system.
 
-        Contact directions make JᵀJ stiff (≈1e12) beside weakly observed ones, so the system is
-        regularized by 1e-9·diag(JᵀJ), a prior far weaker than any measurement.
+        Contact directions make JᵀJ stiff (≈1e12–1e17) beside weakly observed ones (1e6), so
+        GTSAM eliminates the Jacobi-scaled system S H S (S = diag(H)^−½, unit diagonal; Cov =
+        S (S H S)⁻¹ S), regularized by 1e-8 on that diagonal, a prior far weaker than any
+        measurement.
         """
         T, nz, _ = self.diag.shape
         graph = gtsam.GaussianFactorGraph()
         zero, z = np.zeros((nz, nz)), np.zeros(nz)
         d = np.einsum("kii->ki", self.diag)
-        damping = 1e-9 * (d + 1e-12 * max(float(d.max()), 1.0))
-        for k in range(T):  # H as one unary factor per key and one binary per coupled pair
-            graph.add(gtsam.HessianFactor(k, self.diag[k] + np.diag(damping[k]), z, 0.0))
+        scale = 1.0 / np.sqrt(d + 1e-12 * max(float(d.max()), 1.0))  # (T, nz)
+        for k in range(T):  # S H S as one unary factor per key and one binary per coupled pair
+            diag = scale[k, :, None] * self.diag[k] * scale[k, None, :]
+            graph.add(gtsam.HessianFactor(k, diag + 1e-8 * np.eye(nz), z, 0.0))
             for offset, blocks in enumerate(self.lower, start=1):
                 if k + offset < T:
-                    upper = blocks[k].T  # H_{k, k+offset}
+                    # (S H S)_{k, k+offset}
+                    upper = scale[k, :, None] * blocks[k].T * scale[k + offset, None, :]
                     graph.add(gtsam.HessianFactor(k, k + offset, zero, upper, z, zero, z, 0.0))
         std = np.full((T, nv), np.nan)
         try:
@@ -579,7 +591,8 @@ class BandedSystem:
                 at.insert(k, z)
             marginals = gtsam.Marginals(graph, at)
             for k in range(T) if keys is None else keys:
-                std[k] = np.sqrt(np.clip(np.diag(marginals.marginalCovariance(k))[:nv], 0, None))
+                variance = np.diag(marginals.marginalCovariance(k))[:nv] * scale[k, :nv] ** 2
+                std[k] = np.sqrt(np.clip(variance, 0, None))
         except RuntimeError as err:
             first = str(err).strip().splitlines()[0] if str(err).strip() else "ill-posed"
             warnings.append(f"covariances unavailable (GTSAM: {first}); qpos_std is NaN")
@@ -636,6 +649,31 @@ class BandedSystem:
         return (s * y).reshape(self.g.shape)
 
 
+def honest(blocks: list[Block]) -> list[Block]:
+    """The blocks with each residual row's σ scaled up by the RMS of its whitened residuals
+    over the window where that exceeds 1 (a variance component per row, σ̂² = mean_k r_k²):
+    where the model does not explain the motion as well as its σ says (a wrong mass, a
+    contact softer than modeled), the covariance grows with what the residuals show instead
+    of trusting the factor as exact. Rows that fit within their σ keep it."""
+    out = []
+    for b in blocks:
+        r2 = np.where(b.valid, b.r**2, 0.0)
+        count = np.maximum(b.valid.sum(axis=0), 1)
+        scale = np.sqrt(np.maximum(r2.sum(axis=0) / count, 1.0))  # (m,) per row
+        if np.all(scale == 1.0):
+            out.append(b)
+            continue
+        if b.J is None:
+            J = None
+        elif b.dofwise:
+            J = b.J / scale[None, None, :, None]
+        else:
+            J = b.J / scale[None, :, None]
+        J_bias = None if b.J_bias is None else b.J_bias / scale[None, :, None]
+        out.append(replace(b, r=b.r / scale, J=J, J_bias=J_bias))
+    return out
+
+
 def solve_window(
     problem: Problem, qpos: np.ndarray, bias: np.ndarray, covariance: bool | range = True
 ) -> WindowResult:
@@ -653,8 +691,10 @@ def solve_window(
         converged = False
         it = 0
         system = None
+        blocks: list[Block] = []
         for it in range(1, p.settings.max_iterations + 1):  # noqa: B007
-            system = BandedSystem.of(lin.linearize(qpos, bias), lin, bias)
+            blocks = lin.linearize(qpos, bias)
+            system = BandedSystem.of(blocks, lin, bias)
             s, ab = system.scaled_band()
             while lam <= 1e10:
                 try:
@@ -696,20 +736,110 @@ def solve_window(
             [],
             lin.passes[True],
             lin.passes[False],
+            BandedSystem.of(honest(blocks), lin, bias) if blocks else system,
             system,
+            blocks[0] if blocks else None,
         )
     finally:
         lin.close()
     if not covariance:
         return result
-    return with_covariance(result, covariance if isinstance(covariance, range) else None)
+    return with_covariance(result, covariance if isinstance(covariance, range) else None, problem)
 
 
-def with_covariance(result: WindowResult, keys: range | None = None) -> WindowResult:
+def with_covariance(
+    result: WindowResult, keys: range | None = None, problem: Problem | None = None
+) -> WindowResult:
     """`result` with the marginal standard deviations of x_k at `keys` (None: every knot) from
-    its last linearization (GTSAM), and their warnings."""
+    its last linearization (GTSAM), and their warnings; with the problem, also the variance
+    of the model's uncertain parameters (`consider_variance`)."""
     if result.system is None:
         return result
     warnings = list(result.warnings)
     std = result.system.marginal_std(result.qpos_std.shape[1], warnings, keys)
+    if problem is not None:  # and the model's uncertain parameters' share
+        std = np.sqrt(std**2 + consider_variance(problem, result))
     return replace(result, qpos_std=std, warnings=warnings)
+
+
+CONSIDER_STEP = 0.01  # relative change of a parameter for its finite difference
+
+
+def _scaled_softness(model: mujoco.MjModel, scale: float) -> None:
+    """ε of every solimp (d0 and dwidth, ε = (1 − d)/d) times `scale`."""
+    for _, imp_name in SOLREF_SOLIMP_FIELDS:
+        imp = getattr(model, imp_name)
+        eps = (1.0 - imp[:, :2]) / imp[:, :2]
+        imp[:, :2] = 1.0 / (1.0 + scale * eps)
+
+
+def _scaled_timeconst(model: mujoco.MjModel, scale: float) -> None:
+    """κ of every solref in the (timeconst, dampratio) format times `scale`."""
+    for ref_name, _ in SOLREF_SOLIMP_FIELDS:
+        ref = getattr(model, ref_name)
+        ref[:, 0] = np.where(ref[:, 0] > 0, ref[:, 0] * scale, ref[:, 0])
+
+
+def _scaled_masses(model: mujoco.MjModel, scale: float) -> None:
+    """Every body's mass and inertia times `scale`."""
+    model.body_mass[:] *= scale
+    model.body_inertia[:] *= scale
+
+
+# the model's parameters the covariances consider: name → (relative change, its σ setting)
+CONSIDERED = {
+    "softness_eps": (_scaled_softness, "model_softness_std"),
+    "softness_kappa": (_scaled_timeconst, "model_softness_std"),
+    "masses": (_scaled_masses, "model_mass_std"),
+}
+
+
+def consider_variance(
+    problem: Problem, result: WindowResult, parameters: tuple[str, ...] = tuple(CONSIDERED)
+) -> np.ndarray:
+    """(T, nv) the variance the estimate inherits from the model's uncertain parameters,
+    which it does not estimate (Schmidt's consider covariance): per parameter θ — the contact
+    softness ε and κ and the masses, each as a relative scale with σ_θ from the settings
+    (model_softness_std, model_mass_std) — the estimate's sensitivity S_θ = −H⁻¹ Jᵀ ∂r/∂θ
+    (H, J of the solved system and its physics rows, ∂r/∂θ by a finite difference of the
+    physics residuals at the solution) adds (S_θ σ_θ)². A contact softer than modeled lets
+    the robot sit lower: the height's variance grows by that much."""
+    system, physics = result.solved_system, result.physics
+    nv = problem.model.nv
+    variance = np.zeros((problem.T, nv))
+    if system is None or physics is None or physics.J is None:
+        return variance
+    s, ab = system.scaled_band()
+
+    def physics_rows(model: mujoco.MjModel) -> np.ndarray:
+        """The physics rows at the solution (the linearization may be a step before it)."""
+        lin = Linearizer(replace(problem, model=model))
+        try:
+            return lin.blocks(lin.terms(result.qpos, False), result.bias)[0].r
+        finally:
+            lin.close()
+
+    at_solution = None
+    for name in parameters:
+        perturb, setting = CONSIDERED[name]
+        sigma = getattr(problem.settings, setting)
+        if sigma <= 0:
+            continue
+        if at_solution is None:
+            at_solution = physics_rows(problem.model)
+        model = copy.deepcopy(problem.model)
+        perturb(model, 1.0 + CONSIDER_STEP)
+        dr = (physics_rows(model) - at_solution) / CONSIDER_STEP  # per unit relative change
+        g = np.zeros_like(system.g)  # Jᵀ ∂r/∂θ by key: knot row i reaches keys i, i+1, i+2
+        for a in range(3):
+            g[a : a + len(dr), :nv] += np.einsum(
+                "kmc,km->kc", physics.J[:, :, a * nv : (a + 1) * nv], dr
+            )
+        if physics.J_bias is not None:
+            g[1 : 1 + len(dr), nv:] += np.einsum("kmc,km->kc", physics.J_bias, dr)
+        try:
+            sensitivity = replace(system, g=g).damped_step(s, ab, LAMBDA_MIN)[:, :nv]
+        except np.linalg.LinAlgError:
+            continue
+        variance += (sensitivity * sigma) ** 2
+    return variance

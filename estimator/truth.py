@@ -32,8 +32,10 @@ class Series:
 class StateTopics:
     """Every state topic of one prefix in a log (the writer's layout; contacts not read).
 
-    odometry:       body → (N, 13): position (3), quaternion w, x, y, z (4), then the twist
-                    in the body frame: linear velocity of the body origin (3), angular (3)
+    odometry:       body → (N, 22): position (3), quaternion w, x, y, z (4), then the twist
+                    in the body frame: linear velocity of the body origin (3), angular (3),
+                    then the position's covariance (3 × 3, row-major; NaN when the message
+                    gives none: all zeros)
     joint_names:    the JointState's names, in its order (J)
     joints:         (N, J·3) per joint position, velocity, effort (NaN where not given)
     contact_wrench: body → (N, 6) net contact force (3) and torque (3), body frame
@@ -105,6 +107,8 @@ def read_state_topics(path: str | Path, prefix: str = PREFIX) -> StateTopics:
             p, q = m.pose.pose.position, m.pose.pose.orientation
             lin, ang = m.twist.twist.linear, m.twist.twist.angular
             row = [p.x, p.y, p.z, q.w, q.x, q.y, q.z, lin.x, lin.y, lin.z, ang.x, ang.y, ang.z]
+            covariance = np.reshape(m.pose.covariance, (6, 6))[:3, :3].ravel()
+            row += list(covariance) if np.any(covariance) else [np.nan] * 9
             odometry.setdefault(name, {})[t] = row
         elif topic == root + "joint_states":
             n = len(m.name)

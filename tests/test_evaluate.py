@@ -19,6 +19,7 @@ from estimator.evaluate import (
     compare_states,
     gap_intervals,
     intersect_intervals,
+    position_nees,
     precision_recall,
     rmse,
     rotation_angles,
@@ -46,6 +47,16 @@ def test_rotation_angle_is_the_short_way_and_ignores_the_quaternion_sign():
     assert rotation_angles(turned, identity)[0] == pytest.approx(0.1)
     assert rotation_angles(-turned, identity)[0] == pytest.approx(0.1)
     assert rotation_angles(turned, turned)[0] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_position_nees_of_known_errors_and_covariances():
+    """eᵀ Σ⁻¹ e / 3 per knot; NaN without a covariance."""
+    cov = np.diag([1e-6, 4e-6, 9e-6])
+    errors = np.array([[1e-3, 0.0, 0.0], [0.0, 2e-3, 3e-3], [1e-3, 1e-3, 1e-3]])
+    covariances = np.stack([cov, cov, np.full((3, 3), np.nan)])
+    nees = position_nees(errors, covariances)
+    np.testing.assert_allclose(nees[:2], [1 / 3, 2 / 3])
+    assert np.isnan(nees[2])
 
 
 def test_precision_and_recall_of_known_contact_intervals():
@@ -174,6 +185,8 @@ def test_evaluate_against_ground_truth_beats_the_raw_measurements(estimated, cap
     assert summary["orientation_deg"] < raw["orientation_deg"] / 10
     assert summary["occluded_s"] > 0 and summary["occluded_position_mm"] < 1.0
     assert summary["contact_precision"] > 0.9 and summary["contact_recall"] > 0.9
+    # the covariance is written and scored: eᵀΣ⁻¹e/3 per knot, averaged per body
+    assert 0.1 < metrics["details"]["bodies"]["torso"]["position_anees"] < 10
     # the biases were estimated: closer to the truth than zero is
     imu = metrics["details"]["imu_bias"]["imu"]
     assert imu["accel_mps2"] < imu["true_accel_mps2"] / 2
@@ -191,6 +204,8 @@ def test_the_ground_truth_against_itself_has_no_error(estimated, tmp_path):
             assert summary[key] is None, key
         elif key.startswith("contact_precision") or key.startswith("contact_recall"):
             assert summary[key] == 1.0
+        elif key == "position_anees":  # the truth has no covariance
+            assert summary[key] is None
         else:
             assert summary[key] == 0.0, key
     assert metrics["notes"]

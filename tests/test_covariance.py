@@ -1,0 +1,61 @@
+"""Covariances that hold on an imperfect model: rows σ scaled to their residuals, and the
+model's uncertain parameters considered (estimator.smoother.honest, consider_variance)."""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimator import smoother
+from estimator.config import load_config
+from estimator.logs import read_log
+from estimator.problem import Settings, build_problem, knot_grid
+from estimator.run import initial_trajectory
+from estimator.smoother import Block, honest, solve_window
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_rows_whose_residuals_exceed_their_sigma_are_scaled_to_them():
+    """A row with whitened residuals of RMS 3 gets σ × 3 (its r and J ÷ 3); a row that fits
+    within its σ keeps it; invalid entries (no factor) do not count."""
+    rng = np.random.default_rng(0)
+    K = 400
+    r = np.stack([3.0 * rng.standard_normal(K), 0.5 * rng.standard_normal(K)], axis=1)
+    valid = np.ones((K, 2), bool)
+    valid[:100, 0] = False
+    r[:100, 0] = 0.0
+    J = np.ones((K, 2, 6))
+    (scaled,) = honest([Block("physics", r, J, np.zeros(K), valid)])
+    rms = np.sqrt(np.mean(r[100:, 0] ** 2))
+    np.testing.assert_allclose(scaled.r[:, 0], r[:, 0] / rms)
+    np.testing.assert_allclose(scaled.J[:, 0], J[:, 0] / rms)
+    np.testing.assert_array_equal(scaled.r[:, 1], r[:, 1])
+    assert rms == pytest.approx(3.0, rel=0.1)
+
+
+def test_considered_softness_predicts_how_far_a_re_solved_estimate_moves():
+    """The linear sensitivity S_κ = −H⁻¹ Jᵀ ∂r/∂κ of the quadruped's height to its contacts'
+    κ against re-solving the window with κ × 1.02: within 15% (the base sits on its feet's
+    contacts, so a stiffer or softer contact moves it by a fraction of a millimetre)."""
+    config = load_config(ROOT / "configs" / "quadruped_trot.toml")
+    log = read_log(ROOT / "recordings" / "quadruped_trot.mcap", config)
+    t_ns = knot_grid(log.measurements, 0.005)[100:180]
+    settings = Settings(tolerance=1e-10, max_iterations=60, model_mass_std=0.0)
+    problem = build_problem(config, log.measurements, settings, t_ns)
+    qpos = initial_trajectory(problem.model, log.measurements, t_ns)
+    solved = solve_window(problem, qpos, np.zeros((problem.T, problem.nb)), covariance=False)
+    step = 0.02
+    model = copy.deepcopy(problem.model)
+    smoother._scaled_timeconst(model, 1.0 + step)
+    moved = solve_window(replace(problem, model=model), solved.qpos, solved.bias, covariance=False)
+    actual = np.abs(moved.qpos[:, 2] - solved.qpos[:, 2])[10:-10]
+    only_kappa = replace(problem, settings=replace(settings, model_softness_std=step))
+    variance = smoother.consider_variance(only_kappa, solved, ("softness_kappa",))
+    predicted = np.sqrt(variance[:, 2])[10:-10]
+    assert np.median(actual) > 2e-5  # it moves: tens of micrometres
+    assert np.median(predicted) == pytest.approx(np.median(actual), rel=0.15)
