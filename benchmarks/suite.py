@@ -25,6 +25,10 @@ occlusions for the runs that had any, then the checklist of the targets:
        the kinematic smoother's;
     3. in nominal conditions its net contact force error is at most 10% of the robot's weight.
 
+The public robots (`PUBLIC_ROBOTS`: MuJoCo Menagerie's Go2, H1 and Panda with a box) are
+simulated with `physfuse simulate --model` and never calibrated: their runs take the default
+settings and each model's own contact settings, as a new user's first run would.
+
 --no-mismatch simulates every log with the robot exactly its model (`physfuse simulate
 --no-mismatch`; the same seed draws the same noise, controller and pushes): what is left of a
 miss then is the estimator's, not the model's. Its logs and runs are kept apart in WORK
@@ -136,6 +140,16 @@ def call(argv: Sequence[str], timeout_s: float, transcript: Path) -> str | None:
     return lines[-1] if lines else f"physfuse {argv[0]} exited with status {proc.returncode}"
 
 
+# public robots from MuJoCo Menagerie (physics/models/menagerie, docs/menagerie.md), simulated
+# with `physfuse simulate --model`; estimated with default settings and the model's own
+# contact settings: never calibrated
+PUBLIC_ROBOTS: Mapping[str, tuple[str, ...]] = {
+    "go2": ("--model", "physics/models/menagerie/go2.xml", "--excitation", "0.1",
+            "--pushes", "base"),
+    "h1": ("--model", "physics/models/menagerie/h1.xml", "--pushes", "pelvis"),
+    "panda_box": ("--model", "physics/models/menagerie/panda_box.xml", "--excitation", "0.2",
+                  "--markers", "box_marker0", "box_marker1", "box_marker2", "box_marker3"),
+}  # fmt: skip
 CALIBRATED_SETTING = "softness_eps"  # fitted per robot before the runs (--no-calibration)
 EXACT_MODEL = "-exact-model"  # in the names of --no-mismatch logs and runs
 
@@ -156,8 +170,9 @@ def simulate_log(
     if log.exists() and config.exists():
         return log, config, None
     partial_log, partial_config = logs / f"{stem}.partial.mcap", logs / f"{stem}.partial.toml"
+    what = list(PUBLIC_ROBOTS.get(scenario, (scenario,)))
     argv = [
-        "simulate", scenario, "--condition", condition, "--seed", str(seed),
+        "simulate", *what, "--condition", condition, "--seed", str(seed),
         "--duration", f"{duration_s:g}", "--out", str(partial_log),
         "--config-out", str(partial_config), "--quiet",
     ] + ([] if mismatch else ["--no-mismatch"])  # fmt: skip
@@ -327,7 +342,9 @@ def run_suite(
     logs.mkdir(parents=True, exist_ok=True)
     suffix = "" if mismatch else EXACT_MODEL
     pairs = [(s, c) for s in scenarios for c in conditions]
-    robots = list(dict.fromkeys((s, calibration_condition(c)) for s, c in pairs))
+    robots = list(
+        dict.fromkeys((s, calibration_condition(c)) for s, c in pairs if s not in PUBLIC_ROBOTS)
+    )
     to_simulate = list(dict.fromkeys(pairs + (robots if calibrate else [])))
     with ThreadPoolExecutor(jobs) as pool:
         simulated = dict(
@@ -733,7 +750,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=Path("out/suite/work"),
         help="where the logs (cached) and the runs' outputs go",
     )
-    parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=SCENARIOS)
+    every = [*SCENARIOS, *PUBLIC_ROBOTS]
+    parser.add_argument("--scenarios", nargs="+", default=every, choices=every)
     parser.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=CONDITIONS)
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--duration", type=float, default=DURATION_S, help="log length, s")
