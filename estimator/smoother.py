@@ -802,8 +802,9 @@ def consider_variance(
     softness ε and κ and the masses, each as a relative scale with σ_θ from the settings
     (model_softness_std, model_mass_std) — the estimate's sensitivity S_θ = −H⁻¹ Jᵀ ∂r/∂θ
     (H, J of the solved system and its physics rows, ∂r/∂θ by a finite difference of the
-    physics residuals at the solution) adds (S_θ σ_θ)². A contact softer than modeled lets
-    the robot sit lower: the height's variance grows by that much."""
+    physics residuals at the solution) adds (S_θ σ_θ)², as its mean over the window per dof.
+    A contact softer than modeled lets the robot sit lower: the height's variance grows by
+    that much."""
     system, physics = result.solved_system, result.physics
     nv = problem.model.nv
     variance = np.zeros((problem.T, nv))
@@ -841,5 +842,8 @@ def consider_variance(
             sensitivity = replace(system, g=g).damped_step(s, ab, LAMBDA_MIN)[:, :nv]
         except np.linalg.LinAlgError:
             continue
-        variance += (sensitivity * sigma) ** 2
+        # its RMS over the window, per dof: a constant parameter moves the estimate by about
+        # this much throughout, where the linear sensitivity may pass through zero (a load
+        # moving from foot to foot)
+        variance += np.mean((sensitivity * sigma) ** 2, axis=0)
     return variance

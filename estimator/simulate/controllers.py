@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
+from estimator.actuation import moment_dense
 from estimator.simulate.errors import SimulationError
 
 
@@ -440,7 +441,7 @@ def holding_forces(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
     data.qacc[:] = 0.0
     mujoco.mj_inverse(model, data)
     tau = data.qfrc_inverse + data.qfrc_constraint
-    moment = _moments(model, data)
+    moment = moment_dense(model, data)
     rows = np.isin(data.efc_type[: data.nefc], _CONTACT_ROWS)
     jac = constraint_jacobian(model, data)[rows]
     scale = 100.0  # N of constraint force per N (N·m) of actuator force in the norm
@@ -510,7 +511,7 @@ class KeyframeHold:
         self.q_lo = np.where(ranged, model.jnt_range[joints, 0], -np.inf)
         self.q_hi = np.where(ranged, model.jnt_range[joints, 1], np.inf)
         # motor gains
-        moment = _moments(model, data)
+        moment = moment_dense(model, data)
         mass = np.zeros((model.nv, model.nv))
         mujoco.mj_fullM(model, data, mass)
         r2 = np.maximum(np.sum(moment**2, axis=1), 1e-300)
@@ -562,15 +563,6 @@ class KeyframeHold:
         offset = data.subtree_com[self.root] - self.com_key
         velocity = self.jac_com @ data.qvel
         return np.cross(up, offset) / self.height, np.cross(up, velocity) / self.height
-
-
-def _moments(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
-    """(nu, nv) dense actuator moment arms of `data` (after its transmission stage)."""
-    moment = np.zeros((model.nu, model.nv))
-    mujoco.mju_sparse2dense(
-        moment, data.actuator_moment, data.moment_rownnz, data.moment_rowadr, data.moment_colind
-    )
-    return moment
 
 
 def _biped(
