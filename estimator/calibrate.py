@@ -37,7 +37,8 @@ from estimator.run import estimate
 from physics.errors import UnsupportedModelError
 from physics.softness import Softness
 
-CALIBRATED = ("softness_eps", "softness_kappa")
+# the model's softness as one value for every element, or a factor on its own per-geom values
+CALIBRATED = ("softness_eps", "softness_kappa", "softness_eps_scale", "softness_kappa_scale")
 GRID_RATIO = 1.15  # between neighbouring grid values
 GRID_POINTS = 7
 IDENTIFIED_COST = 0.5  # Δ(½ Σ r²) of one σ in one parameter
@@ -154,7 +155,8 @@ def calibrate(
 
 
 def _current_value(config: Config, settings: Settings, setting: str) -> float:
-    """The setting's value, or the model's own where it is unset (one for the whole model)."""
+    """The setting's value, or the model's own where it is unset (one for the whole model;
+    a scale's is 1)."""
     value = getattr(settings, setting)
     if value is not None:
         return float(value)

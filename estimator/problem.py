@@ -46,6 +46,7 @@ from estimator.logs.measurements import Measurement
 from physics.dynamics import make_dynamics
 from physics.errors import UnsupportedModelError
 from physics.softness import Softness, override
+from physics.softness import scale as scale_softness
 
 _OBJ = mujoco.mjtObj
 _SENS = mujoco.mjtSensor
@@ -113,6 +114,13 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
         None,
         "κ in s replacing every solref of the model (eq. 28; ≥ 2h); unset: the model's own solref",
     ),
+    "softness_eps_scale": (
+        1.0,
+        "a factor on the model's own ε = (1 − d)/d of every solimp, per-geom values kept "
+        "(after softness_eps when that is set); `physfuse calibrate --setting "
+        "softness_eps_scale` fits it",
+    ),
+    "softness_kappa_scale": (1.0, "a factor on every solref time constant κ of the model"),
     "model_softness_std": (
         0.1,
         "relative σ of the model's contact softness (ε and κ), which the covariances account "
@@ -168,6 +176,8 @@ class Settings:
     # the model's own contact softness unless set (an override of every element's)
     softness_eps: float | None = None
     softness_kappa: float | None = None
+    softness_eps_scale: float = 1.0
+    softness_kappa_scale: float = 1.0
     model_softness_std: float = 0.1
     model_mass_std: float = 0.05
     bias_prior_accel: float = 0.5
@@ -182,8 +192,10 @@ class Settings:
         return "cauchy" if self.method == "physics" else "none"
 
     def apply_softness(self, model: mujoco.MjModel) -> None:
-        """Override the model's own softness where softness_eps / softness_kappa are set."""
+        """Override the model's own softness where softness_eps / softness_kappa are set,
+        then scale it by softness_eps_scale / softness_kappa_scale."""
         override(model, eps=self.softness_eps, kappa=self.softness_kappa)
+        scale_softness(model, self.softness_eps_scale, self.softness_kappa_scale)
 
     @classmethod
     def from_config(cls, config: Config) -> Settings:
@@ -210,6 +222,11 @@ class Settings:
                     f"({SETTINGS[key][1]})"
                 )
             values[key] = int(value) if isinstance(default, int) else value
+        for key in ("softness_eps_scale", "softness_kappa_scale"):
+            if key in values and not values[key] > 0:
+                raise ConfigError(
+                    f"{config.path}: estimator.{key} = {values[key]!r}; expected a factor > 0"
+                )
         settings = cls(**values)
         try:  # validates ε and κ
             Softness(

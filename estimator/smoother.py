@@ -41,7 +41,7 @@ from estimator.problem import (
     retract,
     velocities,
 )
-from physics.softness import SOLREF_SOLIMP_FIELDS
+from physics.softness import scale as scale_softness
 
 THREADS = 2
 LAMBDA_MIN = 1e-9  # Levenberg–Marquardt's least damping, and its first
@@ -765,19 +765,12 @@ def with_covariance(
 CONSIDER_STEP = 0.01  # relative change of a parameter for its finite difference
 
 
-def _scaled_softness(model: mujoco.MjModel, scale: float) -> None:
-    """ε of every solimp (d0 and dwidth, ε = (1 − d)/d) times `scale`."""
-    for _, imp_name in SOLREF_SOLIMP_FIELDS:
-        imp = getattr(model, imp_name)
-        eps = (1.0 - imp[:, :2]) / imp[:, :2]
-        imp[:, :2] = 1.0 / (1.0 + scale * eps)
+def _scaled_softness(model: mujoco.MjModel, factor: float) -> None:
+    scale_softness(model, eps_scale=factor)
 
 
-def _scaled_timeconst(model: mujoco.MjModel, scale: float) -> None:
-    """κ of every solref in the (timeconst, dampratio) format times `scale`."""
-    for ref_name, _ in SOLREF_SOLIMP_FIELDS:
-        ref = getattr(model, ref_name)
-        ref[:, 0] = np.where(ref[:, 0] > 0, ref[:, 0] * scale, ref[:, 0])
+def _scaled_timeconst(model: mujoco.MjModel, factor: float) -> None:
+    scale_softness(model, kappa_scale=factor)
 
 
 def _scaled_masses(model: mujoco.MjModel, scale: float) -> None:

@@ -168,3 +168,17 @@ def override(model: mujoco.MjModel, eps: float | None = None, kappa: float | Non
             getattr(model, ref_name)[:] = given.solref()
         if eps is not None:
             getattr(model, imp_name)[:] = given.solimp()
+
+
+def scale(model: mujoco.MjModel, eps_scale: float = 1.0, kappa_scale: float = 1.0) -> None:
+    """Scale the model's own softness, in place, element by element: ε = (1 − d)/d of every
+    solimp's d0 and dwidth times eps_scale, every solref time constant (the (κ, damping ratio)
+    format) times kappa_scale. Unlike `override`, per-geom differences are kept."""
+    for ref_name, imp_name in SOLREF_SOLIMP_FIELDS:
+        if eps_scale != 1.0:
+            imp = getattr(model, imp_name)
+            eps = (1.0 - imp[:, :2]) / imp[:, :2]
+            imp[:, :2] = 1.0 / (1.0 + eps_scale * eps)
+        if kappa_scale != 1.0:
+            ref = getattr(model, ref_name)
+            ref[:, 0] = np.where(ref[:, 0] > 0, ref[:, 0] * kappa_scale, ref[:, 0])

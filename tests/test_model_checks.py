@@ -7,13 +7,14 @@ import json
 from pathlib import Path
 
 import mujoco
+import numpy as np
 import pytest
 import tomlkit
 from model_variants import config_for_model, quadruped_with_actuators
 
 from estimator.cli import main
 from estimator.model_checks import resting_penetration
-from estimator.problem import dof_names, joint_name
+from estimator.problem import Settings, dof_names, joint_name
 
 ROOT = Path(__file__).resolve().parent.parent
 LOG = ROOT / "recordings" / "quadruped_trot.mcap"
@@ -126,3 +127,26 @@ def test_an_unnamed_free_joint_is_named_by_its_body():
     model = mujoco.MjModel.from_xml_string(SOFT_BOX)
     assert joint_name(model, 0) == "box"
     assert dof_names(model)[:3] == ["box_x", "box_y", "box_z"]
+
+
+def test_a_softness_scale_keeps_the_models_per_geom_values():
+    """softness_eps_scale multiplies each element's own ε = (1 − d)/d (Go2's feet and its
+    other geoms differ, and stay different); softness_kappa_scale each time constant."""
+    model = mujoco.MjModel.from_xml_path(str(ROOT / "physics" / "models" / "menagerie" / "go2.xml"))
+    eps = (1 - model.geom_solimp[:, :2]) / model.geom_solimp[:, :2]
+    kappa = model.geom_solref[:, 0].copy()
+    assert len(np.unique(np.round(eps[:, 0], 9))) > 1  # per-geom values to keep
+    Settings(softness_eps_scale=1.2, softness_kappa_scale=0.9).apply_softness(model)
+    scaled = (1 - model.geom_solimp[:, :2]) / model.geom_solimp[:, :2]
+    np.testing.assert_allclose(scaled, 1.2 * eps, rtol=1e-12)
+    np.testing.assert_allclose(model.geom_solref[:, 0], 0.9 * kappa, rtol=1e-12)
+
+
+def test_calibrate_fits_a_scale_of_the_models_own_softness(tmp_path, capsys):
+    log, config = ROOT / "recordings" / "go2.mcap", ROOT / "configs" / "go2.toml"
+    argv = ["calibrate", str(log), "--config", str(config), "--setting", "softness_eps_scale"]
+    argv += ["--duration", "0.25", "--range", "0.8", "1.25", "--points", "3"]
+    assert main([*argv, "--out", str(tmp_path), "--config-out", str(tmp_path / "c.toml")]) == 0
+    report = json.loads((tmp_path / "calibration.json").read_text())
+    assert report["setting"] == "softness_eps_scale" and report["initial"] == 1.0
+    assert "softness_eps_scale = " in (tmp_path / "c.toml").read_text()
