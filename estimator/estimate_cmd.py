@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     accuracy = _accuracy(args.log, model, log.measurements, est)
     report = _report(summary, settings, accuracy, out)
     (out / "summary.json").write_text(json.dumps(report, indent=2) + "\n")
-    _print(report, summary)
+    _print(report, summary, input_warnings)
     from estimator.visualize import serve_until_interrupted, write_recording
 
     write_recording(est, model, log, path=out / "estimate.rrd", spawn=args.spawn, serve=args.serve)
@@ -196,7 +196,7 @@ def _stages(report: dict[str, Any]) -> str:
     )
 
 
-def _print(report: dict[str, Any], summary: Summary) -> None:
+def _print(report: dict[str, Any], summary: Summary, printed: list[str]) -> None:
     status = "converged" if all(summary.converged) else "NOT converged in every window"
     print(
         f"estimated {summary.duration_s:.2f} s of log: {summary.knots} knots of "
@@ -221,5 +221,5 @@ def _print(report: dict[str, Any], summary: Summary) -> None:
         print("against ground truth (RMSE):      raw   estimate")
         for metric, raw in accuracy["raw"].items():
             print(f"  {metric:28s} {raw:9.3f} {accuracy['estimate'][metric]:9.3f}")
-    for warning in summary.warnings:
+    for warning in summary.warnings[len(printed) :]:  # those not printed before the estimate
         print(f"physfuse estimate: warning: {warning}", file=sys.stderr)

@@ -12,6 +12,7 @@ import mujoco
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from estimator.actuation import moment_dense
 from estimator.config import Config
 from estimator.contact_forces import balanced_constraints
 from estimator.estimate import Estimate
@@ -203,7 +204,7 @@ def finish(
     """The Estimate of a whole-log trajectory and its Summary (any method)."""
     est = collect_estimate(problem, qpos, bias, std, config)
     if problem.settings.method == "physics":  # (a baseline's misfit is no news about the model)
-        warnings = warnings + consistency_warnings(est)
+        warnings = warnings + consistency_warnings(est, problem)
     summary = Summary(
         duration_s=(problem.t_ns[-1] - problem.t_ns[0]) / 1e9,
         knots=problem.T,
@@ -461,13 +462,14 @@ def residuals_by_type(
 UNEXPLAINED_MEDIAN_SIGMA = 3.0  # median |whitened residual| of a factor type; Gaussian: 0.67
 
 
-def consistency_warnings(est: Estimate) -> list[str]:
+def consistency_warnings(est: Estimate, problem: Problem | None = None) -> list[str]:
     """Warnings when the model and the measurements do not fit each other.
 
     A residual row (of a factor type) whose median |whitened value| over time exceeds 3σ
     (0.67σ when the model and the noise settings are right; a median ignores occasional
     outliers) means a wrong model, an unmodeled contact or force, or a faulty sensor or noise
-    setting. Names the factor, the row and the time of its largest residual.
+    setting. Names the factor, the row and the time of its largest residual, and for a physics
+    row (with the problem) its dof and the setting most likely behind it (`likely_cause`).
     """
     out = []
     for name, r in est.residuals.items():
@@ -483,12 +485,48 @@ def consistency_warnings(est: Estimate) -> list[str]:
         k = int(np.nanargmax(magnitude[:, j]))
         t = (est.t_ns[k] - est.t_ns[0]) / 1e9
         what = "the motion (physics factors)" if name == "physics" else f"the {name} measurements"
+        row, cause = f"row {j}", "wrong model, unmodeled contact or force, or a faulty sensor or "
+        cause += "noise setting?"
+        if name == "physics" and problem is not None:
+            row = f"dof {j} ({dof_names(problem.model)[j]})"
+            cause = likely_cause(problem, j)
         out.append(
             f"the model does not explain {what}: median residual "
-            f"{median:.1f}σ on row {j} (largest {r[k, j]:+.0f}σ at {t:.2f} s) — wrong model, "
-            "unmodeled contact or force, or a faulty sensor or noise setting?"
+            f"{median:.1f}σ on {row} (largest {r[k, j]:+.0f}σ at {t:.2f} s) — {cause}"
         )
     return out
+
+
+def likely_cause(problem: Problem, dof: int) -> str:
+    """What most likely leaves a physics row unexplained over the whole log, by its dof: an
+    actuated one the commands' force (actuator type, gains, units or mapping); a floating
+    base's vertical or tilting dofs the contacts' softness or the masses; its horizontal and
+    yaw dofs a mounting (a mocap marker or IMU placed other than the model says) or an
+    unmodeled push; another unactuated dof the model's friction, damping or masses."""
+    model = problem.model
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    actuated = bool(np.any(moment_dense(model, data)[:, dof] != 0))
+    joint = int(model.dof_jntid[dof])
+    if actuated:
+        return (
+            "the commands' force through the actuators: check the actuator type and gains, "
+            "the command units and the mapping (physfuse inspect --config: commands against "
+            "efforts)"
+        )
+    if model.jnt_type[joint] == mujoco.mjtJoint.mjJNT_FREE:
+        axis = dof - int(model.jnt_dofadr[joint])
+        if axis in (2, 3, 4):  # z, roll, pitch: carried by the contacts
+            return (
+                "the contact softness or the masses: the robot rests at another depth than "
+                "the model says (physfuse inspect --config: resting penetration; calibrate "
+                "softness_eps_scale)"
+            )
+        return (
+            "a mounting (a mocap marker or IMU placed other than the model says: the "
+            "stream's mount) or an unmodeled push"
+        )
+    return "the model's friction, damping or masses on this joint, or an unmodeled force"
 
 
 def largest_residuals(est: Estimate, problem: Problem, n: int = 5) -> list[dict]:

@@ -265,6 +265,8 @@ def test_estimate_reports_a_model_that_does_not_explain_the_motion(estimated, tm
     # the physics factors give up on what the model cannot explain (a redescending kernel)
     # rather than bend the measured motion, and say so
     assert "the model does not explain the motion (physics factors)" in err
+    # the torso's vertical dof, and what most likely sets it: the contacts or the masses
+    assert "on dof 2 (root_z)" in err and "the contact softness or the masses" in err
     assert (out / "estimate.mcap").exists()
     assert json.loads((out / "summary.json").read_text())["warnings"]
     # the right model raises no such warning

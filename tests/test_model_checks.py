@@ -150,3 +150,19 @@ def test_calibrate_fits_a_scale_of_the_models_own_softness(tmp_path, capsys):
     report = json.loads((tmp_path / "calibration.json").read_text())
     assert report["setting"] == "softness_eps_scale" and report["initial"] == 1.0
     assert "softness_eps_scale = " in (tmp_path / "c.toml").read_text()
+
+
+def test_a_physics_residual_over_the_whole_log_names_the_likely_setting(tmp_path, capsys):
+    """Knee motors 30× too strong: the estimate warns on the knee's dof and points at the
+    commands' force through the actuators (type, gains, units, mapping)."""
+    spec = mujoco.MjSpec.from_file(str(ROOT / "physics" / "models" / "quadruped.xml"))
+    for name in ("front_left_knee", "front_right_knee", "rear_left_knee", "rear_right_knee"):
+        spec.actuator(name).gear[0] *= 30.0
+    model = tmp_path / "strong_knees.xml"
+    model.write_text(spec.to_xml())
+    config = config_for_model(CONFIG, model, tmp_path)
+    out = tmp_path / "out"
+    assert main(["estimate", str(LOG), "--config", str(config), "--out", str(out), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    (line,) = [w for w in err.splitlines() if "does not explain the motion" in w]
+    assert "_knee)" in line and "the commands' force through the actuators" in line
