@@ -166,3 +166,18 @@ def test_a_physics_residual_over_the_whole_log_names_the_likely_setting(tmp_path
     err = capsys.readouterr().err
     (line,) = [w for w in err.splitlines() if "does not explain the motion" in w]
     assert "_knee)" in line and "the commands' force through the actuators" in line
+
+
+def test_a_softness_scale_that_is_not_a_factor_is_a_one_line_error(tmp_path, capsys):
+    config = tmp_path / "zero.toml"
+    config.write_text(
+        (ROOT / "configs" / "go2.toml").read_text().replace("../physics", str(ROOT / "physics"))
+        + "\n[estimator]\nsoftness_eps_scale = 0\n"
+    )
+    log = ROOT / "recordings" / "go2.mcap"
+    assert main(["estimate", str(log), "--config", str(config), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert (
+        len(err.splitlines()) == 1
+        and "estimator.softness_eps_scale = 0; expected a factor > 0" in err
+    )
