@@ -30,6 +30,7 @@ step v_k moves through; accelerometer and force/torque over [t_k, t_k + h), wher
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
@@ -427,6 +428,7 @@ def build_problem(
     (the filters, which step from knot to knot).
     """
     model, sensor_names = compiled or model_with_sensors(config)
+    model = copy.deepcopy(model)  # the softness settings scale it: once, not once per window
     h = settings.h or float(model.opt.timestep)
     if abs(h - model.opt.timestep) > 1e-12:
         model.opt.timestep = h

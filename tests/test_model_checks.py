@@ -13,8 +13,17 @@ import tomlkit
 from model_variants import config_for_model, quadruped_with_actuators
 
 from estimator.cli import main
+from estimator.config import load_config
+from estimator.logs import read_log
 from estimator.model_checks import resting_penetration
-from estimator.problem import Settings, dof_names, joint_name
+from estimator.problem import (
+    Settings,
+    build_problem,
+    dof_names,
+    joint_name,
+    knot_grid,
+    model_with_sensors,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 LOG = ROOT / "recordings" / "quadruped_trot.mcap"
@@ -181,3 +190,19 @@ def test_a_softness_scale_that_is_not_a_factor_is_a_one_line_error(tmp_path, cap
         len(err.splitlines()) == 1
         and "estimator.softness_eps_scale = 0; expected a factor > 0" in err
     )
+
+
+def test_a_softness_scale_is_applied_once_per_problem_not_once_per_window():
+    """build_problem on the same compiled model twice (two windows) scales it once."""
+    config = load_config(ROOT / "configs" / "go2.toml")
+    log = read_log(ROOT / "recordings" / "go2.mcap", config)
+    t_ns = knot_grid(log.measurements, 0.002)
+    compiled = model_with_sensors(config)
+    settings = Settings(softness_eps_scale=1.2)
+    first = build_problem(config, log.measurements, settings, t_ns[10:30], compiled)
+    second = build_problem(config, log.measurements, settings, t_ns[30:50], compiled)
+    np.testing.assert_array_equal(first.model.geom_solimp, second.model.geom_solimp)
+    own = compiled[0].geom_solimp
+    eps = (1 - own[:, :2]) / own[:, :2]
+    scaled = (1 - first.model.geom_solimp[:, :2]) / first.model.geom_solimp[:, :2]
+    np.testing.assert_allclose(scaled, 1.2 * eps, rtol=1e-12)
