@@ -109,7 +109,8 @@ def calibrate(
             f"calibrate: {setting} needs 3 or more grid values, each > 0 and ≥ {lower:g}; got "
             + ", ".join(f"{v:.4g}" for v in values)
         )
-    base = replace(settings, method="physics", init="measurements")
+    # (the grid is the fit here: the estimator's own softness fit stays off)
+    base = replace(settings, method="physics", init="measurements", fit_softness="none")
     points: list[Point] = []
 
     def evaluate(value: float) -> Point:

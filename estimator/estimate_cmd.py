@@ -205,6 +205,13 @@ def _print(report: dict[str, Any], summary: Summary, printed: list[str]) -> None
         f"{summary.wall_time_s:.1f} s "
         f"({summary.wall_time_s / max(summary.duration_s, 1e-9):.1f}× the log)"
     )
+    fit = summary.softness_fit
+    if fit:
+        print(
+            f"contact softness fitted on the first window ({fit['rounds']:.0f} rounds): the "
+            f"model's ε × {fit['eps_scale']:.4g} ± {fit['eps_scale_sigma']:.2g}, κ × "
+            f"{fit['kappa_scale']:.4g} ± {fit['kappa_scale_sigma']:.2g}"
+        )
     print(
         "final cost by factor type: "
         + ", ".join(

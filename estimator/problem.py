@@ -122,6 +122,11 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
         "softness_eps_scale` fits it",
     ),
     "softness_kappa_scale": (1.0, "a factor on every solref time constant κ of the model"),
+    "fit_softness": (
+        "first_window",
+        "first_window: fit factors on the model's own ε and κ to the first window (the "
+        "physics and the mocap together), then estimate the log with them | none",
+    ),
     "model_softness_std": (
         0.1,
         "relative σ of the model's contact softness (ε and κ), which the covariances account "
@@ -145,6 +150,7 @@ CHOICES: Mapping[str, tuple[str, ...]] = {
     "jerk_kernel": ("auto", "none", "huber", "cauchy"),
     "init": ("measurements", "kinematic", "best"),
     "contact_forces": ("balanced", "model"),
+    "fit_softness": ("none", "first_window"),
 }
 MODEL_ERROR = "model error"  # Problem.bias_of key of the generalized force offset
 
@@ -177,6 +183,7 @@ class Settings:
     # the model's own contact softness unless set (an override of every element's)
     softness_eps: float | None = None
     softness_kappa: float | None = None
+    fit_softness: str = "first_window"
     softness_eps_scale: float = 1.0
     softness_kappa_scale: float = 1.0
     model_softness_std: float = 0.1

@@ -31,7 +31,7 @@ from estimator.problem import (
     u_known_along,
     velocities,
 )
-from estimator.smoother import Linearizer, solve_window, with_covariance
+from estimator.smoother import Linearizer, fit_softness, solve_window, with_covariance
 from physics.dynamics import make_dynamics
 from physics.model import weight as model_weight
 
@@ -60,6 +60,8 @@ class Summary:
     model_error_mean: dict[str, float] = field(default_factory=dict)
     # per window, where the kept physics solution started: "kinematic" | "measurements"
     kept_starts: list[str] = field(default_factory=list)
+    # fit_softness: the factors on the model's own ε and κ the first window gave, their σ
+    softness_fit: dict[str, float] = field(default_factory=dict)
 
 
 PASS_COUNTS = ("linearizations", "evaluations", "knots_linearized", "knots_evaluated")
@@ -110,6 +112,9 @@ def smooth(
     passes = dict.fromkeys(PASS_COUNTS, 0)
     kept_until = 0
     kept_starts: list[str] = []
+    fitted: dict[str, float] = {}
+    if settings.fit_softness == "first_window" and settings.method == "physics":
+        settings, fitted = _fit_softness(config, measurements, settings, t_ns[:W], qpos0, compiled)
     for i, s in enumerate(starts):
         e = min(T, s + W)
         window = {name: samples_within(m, t_ns[s], t_ns[e - 1]) for name, m in measurements.items()}
@@ -168,9 +173,39 @@ def smooth(
             break
     assert bias is not None
     full = build_problem(config, measurements, settings, t_ns, compiled)
-    return finish(
+    est, summary = finish(
         config, full, qpos, bias, std, start, iterations, converged, warnings, passes, kept_starts
     )
+    return est, replace(summary, softness_fit=fitted)
+
+
+def _fit_softness(
+    config: Config,
+    measurements: Mapping[str, Measurement],
+    settings: Settings,
+    t_ns: np.ndarray,
+    qpos0: np.ndarray,
+    compiled: tuple[mujoco.MjModel, dict[str, list[str]]],
+) -> tuple[Settings, dict[str, float]]:
+    """fit_softness = "first_window": the factors on the model's own ε and κ that the physics
+    and the mocap agree on over the first window (`smoother.fit_softness`), folded into the
+    settings every window then takes; the covariances consider their posterior σ."""
+    window = {name: samples_within(m, t_ns[0], t_ns[-1]) for name, m in measurements.items()}
+    problem = build_problem(config, window, settings, t_ns, compiled)
+    fit, _ = fit_softness(problem, qpos0[: len(t_ns)], np.zeros((problem.T, problem.nb)))
+    fitted = replace(
+        settings,
+        softness_eps_scale=settings.softness_eps_scale * fit.eps_scale,
+        softness_kappa_scale=settings.softness_kappa_scale * fit.kappa_scale,
+        model_softness_std=max(fit.sigma),
+    )
+    return fitted, {
+        "eps_scale": fit.eps_scale,
+        "kappa_scale": fit.kappa_scale,
+        "eps_scale_sigma": fit.sigma[0],
+        "kappa_scale_sigma": fit.sigma[1],
+        "rounds": float(fit.rounds),
+    }
 
 
 def raw_estimate(
@@ -218,7 +253,10 @@ def finish(
         warnings=warnings,
         model_error_mean={dof: float(np.mean(e)) for dof, e in est.model_error.items()},
         kept_starts=list(kept_starts),
-        **{key: passes.get(key, 0) for key in PASS_COUNTS},
+        linearizations=passes.get("linearizations", 0),
+        evaluations=passes.get("evaluations", 0),
+        knots_linearized=passes.get("knots_linearized", 0),
+        knots_evaluated=passes.get("knots_evaluated", 0),
     )
     return est, summary
 

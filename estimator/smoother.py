@@ -787,6 +787,100 @@ CONSIDERED = {
 }
 
 
+@dataclass(frozen=True)
+class SoftnessFit:
+    """The contact softness fitted by the physics (`fit_softness`): factors on the model's own
+    ε and κ, their posterior σ (relative), and the rounds taken."""
+
+    eps_scale: float
+    kappa_scale: float
+    sigma: tuple[float, float]
+    rounds: int
+
+
+FIT_ROUNDS = 6
+FIT_STOP = 0.005  # a round that changes both factors by less than this ends the fit
+
+
+def fit_softness(
+    problem: Problem, qpos: np.ndarray, bias: np.ndarray
+) -> tuple[SoftnessFit, WindowResult]:
+    """Fit factors θ = (s_ε, s_κ) on the window's model's own contact softness together with
+    the window's motion: maximum a posteriori with the prior log-normal around 1 (σ =
+    model_softness_std). Each round takes one Gauss–Newton step over (x, θ) through the
+    Schur complement of the solved system — (D − Cᵀ H⁻¹ C) Δθ = −(Jθᵀ r + θ/σ²), with
+    Jθ = ∂r/∂θ of the physics rows (finite differences), C = Jᵀ Jθ, D = Jθᵀ Jθ + 1/σ² —
+    then re-solves the window with the model scaled by exp(θ) from x + S Δθ (S = −H⁻¹ C).
+    The mocap sees how deep the robot sits; the physics says how deep the model lets it."""
+    sigma = problem.settings.model_softness_std
+    names = ("softness_eps", "softness_kappa")
+    theta = np.zeros(2)
+    base = problem.model
+    result = solve_window(problem, qpos, bias, covariance=False)
+    M = np.diag(np.full(2, 1.0 / sigma**2))
+    rounds = 0
+    for rounds in range(1, FIT_ROUNDS + 1):  # noqa: B007
+        system = result.solved_system
+        if system is None or result.physics is None:
+            break
+        parts = [_parameter_sensitivity(problem, result, system, name) for name in names]
+        r = _physics_rows(problem, problem.model, result)
+        D = np.array([[np.sum(a[0] * b[0]) for b in parts] for a in parts])
+        D += np.eye(2) / sigma**2
+        CS = np.array([[np.sum(a[1] * b[2]) for b in parts] for a in parts])  # Cᵀ S = −Cᵀ H⁻¹ C
+        M = D + CS
+        g = np.array([np.sum(dr * r) for dr, _, _ in parts]) + theta / sigma**2
+        step = -np.linalg.solve(M, g)
+        theta += step
+        model = copy.deepcopy(base)
+        scale_softness(model, float(np.exp(theta[0])), float(np.exp(theta[1])))
+        dx = sum(S * d for (_, _, S), d in zip(parts, step, strict=True))
+        nv = problem.model.nv
+        problem = replace(problem, model=model)
+        start_q = retract(model, result.qpos, dx[:, :nv])
+        result = solve_window(problem, start_q, result.bias + dx[:, nv:], covariance=False)
+        if np.max(np.abs(step)) < FIT_STOP:
+            break
+    posterior = np.sqrt(np.clip(np.diag(np.linalg.inv(M)), 0.0, None))
+    fit = SoftnessFit(
+        float(np.exp(theta[0])), float(np.exp(theta[1])), (posterior[0], posterior[1]), rounds
+    )
+    return fit, result
+
+
+def _physics_rows(problem: Problem, model: mujoco.MjModel, result: WindowResult) -> np.ndarray:
+    """The physics rows (K, nv) at the result's solution, with `model`."""
+    lin = Linearizer(replace(problem, model=model))
+    try:
+        return lin.blocks(lin.terms(result.qpos, False), result.bias)[0].r
+    finally:
+        lin.close()
+
+
+def _parameter_sensitivity(
+    problem: Problem, result: WindowResult, system: BandedSystem, name: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For one CONSIDERED parameter θ (a relative change): ∂r/∂θ of the physics rows (K, nv),
+    C = Jᵀ ∂r/∂θ by key (T, nz) and the estimate's sensitivity S = −H⁻¹ C (T, nz)."""
+    physics = result.physics
+    assert physics is not None and physics.J is not None
+    perturb, _ = CONSIDERED[name]
+    model = copy.deepcopy(problem.model)
+    perturb(model, 1.0 + CONSIDER_STEP)
+    at = _physics_rows(problem, problem.model, result)
+    dr = (_physics_rows(problem, model, result) - at) / CONSIDER_STEP
+    nv = problem.model.nv
+    C = np.zeros_like(system.g)  # knot row i reaches keys i, i+1, i+2
+    for a in range(3):
+        C[a : a + len(dr), :nv] += np.einsum(
+            "kmc,km->kc", physics.J[:, :, a * nv : (a + 1) * nv], dr
+        )
+    if physics.J_bias is not None:
+        C[1 : 1 + len(dr), nv:] += np.einsum("kmc,km->kc", physics.J_bias, dr)
+    s, ab = system.scaled_band()
+    return dr, C, replace(system, g=C).damped_step(s, ab, LAMBDA_MIN)
+
+
 def consider_variance(
     problem: Problem, result: WindowResult, parameters: tuple[str, ...] = tuple(CONSIDERED)
 ) -> np.ndarray:
