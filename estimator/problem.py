@@ -125,7 +125,9 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
     "fit_softness": (
         "first_window",
         "first_window: fit factors on the model's own ε and κ to the first window (the "
-        "physics and the mocap together), then estimate the log with them | none",
+        "physics and the mocap together), then estimate the log with them, unless the config "
+        "gives the softness (softness_eps, softness_kappa or a scale: taken as calibrated) | "
+        "none",
     ),
     "model_softness_std": (
         0.1,
@@ -198,6 +200,16 @@ class Settings:
         if self.jerk_kernel != "auto":
             return self.jerk_kernel
         return "cauchy" if self.method == "physics" else "none"
+
+    @property
+    def sets_softness(self) -> bool:
+        """Whether these settings give the contact softness (a value or a factor)."""
+        return (
+            self.softness_eps is not None
+            or self.softness_kappa is not None
+            or self.softness_eps_scale != 1.0
+            or self.softness_kappa_scale != 1.0
+        )
 
     def apply_softness(self, model: mujoco.MjModel) -> None:
         """Override the model's own softness where softness_eps / softness_kappa are set,

@@ -113,7 +113,13 @@ def smooth(
     kept_until = 0
     kept_starts: list[str] = []
     fitted: dict[str, float] = {}
-    if settings.fit_softness == "first_window" and settings.method == "physics":
+    if (
+        settings.fit_softness == "first_window"
+        and settings.method == "physics"
+        and not (
+            settings.sets_softness  # a config that gives the softness is taken as calibrated
+        )
+    ):
         settings, fitted = _fit_softness(config, measurements, settings, t_ns[:W], qpos0, compiled)
     for i, s in enumerate(starts):
         e = min(T, s + W)
