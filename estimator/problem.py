@@ -124,7 +124,7 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
     "softness_kappa_scale": (1.0, "a factor on every solref time constant κ of the model"),
     "fit_softness": (
         "first_window",
-        "first_window: fit factors on the model's own ε and κ to the first window (the "
+        "first_window: fit factors on the model's own ε and κ to the log's first second (the "
         "physics and the mocap together), then estimate the log with them, unless the config "
         "gives the softness (softness_eps, softness_kappa or a scale: taken as calibrated) | "
         "none",

@@ -65,6 +65,7 @@ class Summary:
 
 
 PASS_COUNTS = ("linearizations", "evaluations", "knots_linearized", "knots_evaluated")
+FIT_SPAN_S = 1.0  # fit_softness fits on the log's first second (or first window if shorter)
 
 
 def estimate(
@@ -120,7 +121,10 @@ def smooth(
             settings.sets_softness  # a config that gives the softness is taken as calibrated
         )
     ):
-        settings, fitted = _fit_softness(config, measurements, settings, t_ns[:W], qpos0, compiled)
+        span = min(W, round(FIT_SPAN_S / h))
+        settings, fitted = _fit_softness(
+            config, measurements, settings, t_ns[:span], qpos0, compiled
+        )
     for i, s in enumerate(starts):
         e = min(T, s + W)
         window = {name: samples_within(m, t_ns[s], t_ns[e - 1]) for name, m in measurements.items()}
@@ -194,8 +198,9 @@ def _fit_softness(
     compiled: tuple[mujoco.MjModel, dict[str, list[str]]],
 ) -> tuple[Settings, dict[str, float]]:
     """fit_softness = "first_window": the factors on the model's own ε and κ that the physics
-    and the mocap agree on over the first window (`smoother.fit_softness`), folded into the
-    settings every window then takes; the covariances consider their posterior σ."""
+    and the mocap agree on over the knots t_ns (the log's first second: `smoother.
+    fit_softness`), folded into the settings every window then takes; the covariances
+    consider their posterior σ."""
     window = {name: samples_within(m, t_ns[0], t_ns[-1]) for name, m in measurements.items()}
     problem = build_problem(config, window, settings, t_ns, compiled)
     fit, _ = fit_softness(problem, qpos0[: len(t_ns)], np.zeros((problem.T, problem.nb)))
