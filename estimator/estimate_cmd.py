@@ -208,7 +208,7 @@ def _print(report: dict[str, Any], summary: Summary, printed: list[str]) -> None
     fit = summary.softness_fit
     if fit:
         print(
-            f"contact softness fitted on the first window ({fit['rounds']:.0f} rounds): the "
+            f"contact softness fitted on the log's start ({fit['rounds']:.0f} rounds): the "
             f"model's ε × {fit['eps_scale']:.4g} ± {fit['eps_scale_sigma']:.2g}, κ × "
             f"{fit['kappa_scale']:.4g} ± {fit['kappa_scale_sigma']:.2g}"
         )

@@ -124,11 +124,12 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
     "softness_kappa_scale": (1.0, "a factor on every solref time constant κ of the model"),
     "fit_softness": (
         "first_window",
-        "first_window: fit factors on the model's own ε and κ to the log's first second (the "
+        "first_window: fit factors on the model's own ε and κ to the log's start (the "
         "physics and the mocap together), then estimate the log with them, unless the config "
         "gives the softness (softness_eps, softness_kappa or a scale: taken as calibrated) | "
         "none",
     ),
+    "fit_softness_s": (2.0, "how much of the log's start fit_softness fits on, s"),
     "model_softness_std": (
         0.1,
         "relative σ of the model's contact softness (ε and κ), which the covariances account "
@@ -186,6 +187,7 @@ class Settings:
     softness_eps: float | None = None
     softness_kappa: float | None = None
     fit_softness: str = "first_window"
+    fit_softness_s: float = 2.0
     softness_eps_scale: float = 1.0
     softness_kappa_scale: float = 1.0
     model_softness_std: float = 0.1

@@ -65,7 +65,6 @@ class Summary:
 
 
 PASS_COUNTS = ("linearizations", "evaluations", "knots_linearized", "knots_evaluated")
-FIT_SPAN_S = 1.0  # fit_softness fits on the log's first second (or first window if shorter)
 
 
 def estimate(
@@ -121,7 +120,7 @@ def smooth(
             settings.sets_softness  # a config that gives the softness is taken as calibrated
         )
     ):
-        span = min(W, round(FIT_SPAN_S / h))
+        span = min(T, round(settings.fit_softness_s / h))
         settings, fitted = _fit_softness(
             config, measurements, settings, t_ns[:span], qpos0, compiled
         )
@@ -198,7 +197,7 @@ def _fit_softness(
     compiled: tuple[mujoco.MjModel, dict[str, list[str]]],
 ) -> tuple[Settings, dict[str, float]]:
     """fit_softness = "first_window": the factors on the model's own ε and κ that the physics
-    and the mocap agree on over the knots t_ns (the log's first second: `smoother.
+    and the mocap agree on over the knots t_ns (the log's first fit_softness_s: `smoother.
     fit_softness`), folded into the settings every window then takes; the covariances
     consider their posterior σ."""
     window = {name: samples_within(m, t_ns[0], t_ns[-1]) for name, m in measurements.items()}
