@@ -823,8 +823,8 @@ def fit_softness(
         system = result.solved_system
         if system is None or result.physics is None:
             break
-        parts = [_parameter_sensitivity(problem, result, system, name) for name in names]
         r = _physics_rows(problem, problem.model, result)
+        parts = [_parameter_sensitivity(problem, result, system, name, r) for name in names]
         D = np.array([[np.sum(a[0] * b[0]) for b in parts] for a in parts])
         D += np.eye(2) / sigma**2
         CS = np.array([[np.sum(a[1] * b[2]) for b in parts] for a in parts])  # Cᵀ S = −Cᵀ H⁻¹ C
@@ -858,16 +858,16 @@ def _physics_rows(problem: Problem, model: mujoco.MjModel, result: WindowResult)
 
 
 def _parameter_sensitivity(
-    problem: Problem, result: WindowResult, system: BandedSystem, name: str
+    problem: Problem, result: WindowResult, system: BandedSystem, name: str, at: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For one CONSIDERED parameter θ (a relative change): ∂r/∂θ of the physics rows (K, nv),
-    C = Jᵀ ∂r/∂θ by key (T, nz) and the estimate's sensitivity S = −H⁻¹ C (T, nz)."""
+    C = Jᵀ ∂r/∂θ by key (T, nz) and the estimate's sensitivity S = −H⁻¹ C (T, nz); `at`: the
+    physics rows at the result's solution (`_physics_rows`)."""
     physics = result.physics
     assert physics is not None and physics.J is not None
     perturb, _ = CONSIDERED[name]
     model = copy.deepcopy(problem.model)
     perturb(model, 1.0 + CONSIDER_STEP)
-    at = _physics_rows(problem, problem.model, result)
     dr = (_physics_rows(problem, model, result) - at) / CONSIDER_STEP
     nv = problem.model.nv
     C = np.zeros_like(system.g)  # knot row i reaches keys i, i+1, i+2
@@ -897,6 +897,22 @@ def consider_variance(
     variance = np.zeros((problem.T, nv))
     if system is None or physics is None or physics.J is None:
         return variance
+    at_solution = None
+    for name in parameters:
+        sigma = getattr(problem.settings, CONSIDERED[name][1])
+        if sigma <= 0:
+            continue
+        if at_solution is None:  # (the linearization may be a step before the solution)
+            at_solution = _physics_rows(problem, problem.model, result)
+        try:
+            _, _, S = _parameter_sensitivity(problem, result, system, name, at_solution)
+        except np.linalg.LinAlgError:
+            continue
+        # its RMS over the window, per dof: a constant parameter moves the estimate by about
+        # this much throughout, where the linear sensitivity may pass through zero (a load
+        # moving from foot to foot)
+        variance += np.mean((S[:, :nv] * sigma) ** 2, axis=0)
+    return variance
     s, ab = system.scaled_band()
 
     def physics_rows(model: mujoco.MjModel) -> np.ndarray:
