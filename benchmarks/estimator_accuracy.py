@@ -33,9 +33,7 @@ METHODS = tuple(m for m in CHOICES["method"] if m != "raw")  # raw is every tabl
 
 
 def run(name: str, methods: list[str]) -> dict:
-    config = load_config(
-        ROOT / "configs" / f"{name}.toml", extra_sections=("estimator", "simulate")
-    )
+    config = load_config(ROOT / "configs" / f"{name}.toml")
     path = ROOT / "recordings" / f"{name}.mcap"
     log = read_log(path, config)
     settings = Settings.from_config(config)

@@ -105,7 +105,7 @@ def main() -> None:
         ],
         check=True,
     )
-    config = load_config(config_path, extra_sections=("estimator", "simulate"))
+    config = load_config(config_path)
     settings = Settings.from_config(config)
     start = time.perf_counter()
     measurements = read_log(log, config).measurements

@@ -6,16 +6,19 @@
 Profiles the mocap part of the physics estimate's cost over the setting
 (`estimator/calibrate.py`), prints the profile and the best value, and writes
 DIR/calibration.json and DIR/calibration.png; with --config-out, CONFIG with the value set in
-its [estimator] table, ready for `physfuse estimate`.
+its [estimator] table, ready for `physfuse estimate`. DIR (and --config-out) are checked
+before the first estimate, and the outputs put in place only when the run completes
+(estimator/outputs.py).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,16 +32,22 @@ from estimator.calibrate import (
     calibrate,
     config_with,
 )
-from estimator.config import load_config
-from estimator.errors import PhysfuseError, output_dir
+from estimator.config import Config, load_config
+from estimator.errors import PhysfuseError
 from estimator.evaluate import json_ready
 from estimator.logs import read_log
+from estimator.model_checks import check_for_estimate
+from estimator.outputs import OutputFile, OutputFolder
 from estimator.problem import Settings
 from estimator.run import samples_within
 
+OUTPUTS = ("calibration.json", "calibration.png")  # one run's set, written whole
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("log", type=Path, help="ROS 2 MCAP file or rosbag2 folder")
+    parser.add_argument(
+        "log", type=Path, help="ROS 2 MCAP file, rosbag2 folder, FIFO, or - for standard input"
+    )
     parser.add_argument("--config", type=Path, required=True, help="TOML config (configs/)")
     parser.add_argument(
         "--setting",
@@ -71,10 +80,37 @@ def run(args: argparse.Namespace) -> int:
         raise PhysfuseError(f"--points {args.points}: expected 3 or more")
     if args.duration is not None and args.duration <= 0:
         raise PhysfuseError(f"--duration {args.duration:g}: expected a positive number of s")
-    config = load_config(args.config, extra_sections=("estimator", "simulate"))
+    config = load_config(args.config)
     settings = Settings.from_config(config)
-    out: Path = args.out  # made before the minutes of estimates, so that none are lost to it
-    output_dir(out)
+    # what every estimate of the profile will meet, before the log is read
+    check_for_estimate(config, replace(settings, method="physics", fit_softness="none"))
+    out: Path = args.out
+    with contextlib.ExitStack() as outputs:  # checked before the minutes of estimates
+        tmp = outputs.enter_context(OutputFolder(out, OUTPUTS))
+        config_out = None
+        if args.config_out is not None:  # unchanged: left as it is, its time stamp too
+            new_config = OutputFile(args.config_out, "--config-out", keep_unchanged=True)
+            config_out = outputs.enter_context(new_config)
+        result = _calibrate(args, config, settings)
+        report = {
+            "log": str(args.log),
+            "config": str(args.config),
+            "duration_s": args.duration,  # None: the whole log
+            **asdict(result),
+        }
+        (tmp / "calibration.json").write_text(json.dumps(json_ready(report), indent=2) + "\n")
+        plot(result, tmp / "calibration.png")
+        if config_out is not None:
+            config_with(args.config, config_out, args.setting, result.best)
+    _print(result)
+    if args.config_out is not None:
+        print(f"wrote {args.config_out}: {args.config} with [estimator] {args.setting} set")
+    print(f"outputs: {', '.join(str(out / n) for n in OUTPUTS)}")
+    return 0
+
+
+def _calibrate(args: argparse.Namespace, config: Config, settings: Settings) -> Calibration:
+    """Read the log (its first --duration s) and profile the setting over the grid."""
     log = read_log(args.log, config)
     for warning in log.warnings:
         print(f"physfuse calibrate: warning: {warning}", file=sys.stderr)
@@ -93,21 +129,7 @@ def run(args: argparse.Namespace) -> int:
                   f"({p.wall_time_s:.1f} s)", flush=True)  # fmt: skip
 
     print(f"calibrating {args.setting} on {args.log} (each value: one physics estimate)")
-    result = calibrate(config, measurements, settings, args.setting, grid, progress)
-    report = {
-        "log": str(args.log),
-        "config": str(args.config),
-        "duration_s": args.duration,  # None: the whole log
-        **asdict(result),
-    }
-    (out / "calibration.json").write_text(json.dumps(json_ready(report), indent=2) + "\n")
-    plot(result, out / "calibration.png")
-    _print(result)
-    if args.config_out is not None:
-        config_with(args.config, args.config_out, args.setting, result.best)
-        print(f"wrote {args.config_out}: {args.config} with [estimator] {args.setting} set")
-    print(f"outputs: {out / 'calibration.json'}, {out / 'calibration.png'}")
-    return 0
+    return calibrate(config, measurements, settings, args.setting, grid, progress)
 
 
 def _print(result: Calibration) -> None:

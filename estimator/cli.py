@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
 from collections.abc import Callable, Sequence
 
@@ -48,12 +50,39 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run a subcommand; whatever stops it ends in one line on stderr, never a traceback."""
     try:
-        return int(args._run(args) or 0)
+        args = build_parser().parse_args(argv)
+    except KeyboardInterrupt:  # Ctrl-C while the subcommands load
+        print("physfuse: interrupted", file=sys.stderr)
+        return 130
+    name = f"physfuse {args.command}"
+    try:
+        code = int(args._run(args) or 0)
+        sys.stdout.flush()  # a closed stdout shows here, not as a message at exit
+        return code
+    except BrokenPipeError:  # stdout closed early (`physfuse ... | head -3`): end quietly
+        return _stdout_closed()
+    except KeyboardInterrupt:
+        print(f"{name}: interrupted", file=sys.stderr)
+        return 130  # 128 + SIGINT, as a shell reports a command stopped by Ctrl-C
     except (PhysfuseError, PhysicsError) as err:
-        print(f"physfuse {args.command}: error: {err}", file=sys.stderr)
+        print(f"{name}: error: {err}", file=sys.stderr)
         return 2
+    except OSError as err:  # a file that cannot be read or written: name it
+        where = f"{err.filename}: " if err.filename is not None else ""
+        print(f"{name}: error: {where}{err.strerror or err}", file=sys.stderr)
+        return 2
+
+
+def _stdout_closed() -> int:
+    """The Python docs' recipe (signal module, "Note on SIGPIPE"): point stdout at devnull so
+    that the flush at exit does not fail again; 141 = 128 + SIGPIPE, the status a shell
+    reports for a writer stopped by a closed pipe."""
+    with contextlib.suppress(OSError, ValueError):  # no real descriptor (captured in tests)
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    return 141
 
 
 if __name__ == "__main__":

@@ -20,6 +20,9 @@ Schema (see `configs/README.md` for a worked example):
     time_offset_ns = 0        # t = stamp + time_offset_ns (int64 ns)
     required = true           # a missing required topic is an error (default true)
     noise = { ... }           # per-kind keys below; omitted keys take the defaults
+    max_abs = { ax = 160.0 }  # optional: the largest plausible |value| per component (a
+                              # sample beyond is skipped, counted `out_of_bounds`); defaults
+                              # in estimator/logs/samples.py: BOUNDS (10 km, 1000 rad/s, …)
 
     type-specific keys:
       pose          body = "torso" | site = "torso_marker"   (PoseStamped, TransformStamped)
@@ -62,12 +65,21 @@ quantities in the joint's own units, rad or m):
 
 Each stream is resolved to `elements` (model names, the output column order) and `sources`
 (the matching names in the messages), so the reader handles every kind the same way.
-Other subsystems may keep their own top-level tables in the same file: pass their names as
-`extra_sections` and they come back unvalidated in `Config.sections`.
+
+    [estimator]               # optional: the estimator's settings (estimator/problem.py:
+                              # SETTINGS), each key, type and range checked here
+    [simulate]                # optional and empty: physfuse reads no settings from it (`physfuse
+                              # simulate` takes its options on the command line)
+
+Both come back in `Config.sections`. Other tools may keep their own top-level tables in the
+same file: pass their names as `extra_sections` and they come back unvalidated there too.
+Whether `physfuse estimate` can run the model and settings at all (friction cone,
+integrator, actuators) is `estimator.model_checks.check_for_estimate`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from collections.abc import Iterable, Mapping
@@ -113,7 +125,7 @@ NOISE_DEFAULTS: Mapping[str, Mapping[str, float]] = {
     },
 }
 
-_COMMON_KEYS = ("type", "topic", "stamp", "time_offset_ns", "required", "noise")
+_COMMON_KEYS = ("type", "topic", "stamp", "time_offset_ns", "required", "noise", "max_abs")
 _KIND_KEYS: Mapping[str, tuple[str, ...]] = {
     "pose": ("body", "site", "mount"),
     "tf": ("child_frame_id", "parent_frame_id", "body", "site", "mount"),
@@ -125,6 +137,7 @@ _KIND_KEYS: Mapping[str, tuple[str, ...]] = {
     "wrench": ("site", "body", "quat_site_sensor", "mount"),
 }
 _TOP_KEYS = ("model", "description", "streams")
+SECTIONS = ("estimator", "simulate")  # tables of physfuse's own, validated on loading
 _IDENTITY_WXYZ = (1.0, 0.0, 0.0, 0.0)
 _MAX_OFFSET_NS = 10**15
 
@@ -194,6 +207,8 @@ class StreamConfig:
     parent_frame_id: str | None = None  # tf: accept only transforms from this frame
     # where the sensor sits when the config mounts it: `elements` is then its added site
     mount: Mount | None = None
+    # component → the largest plausible |value| (over the reader's defaults, `BOUNDS`)
+    max_abs: Mapping[str, float] = dataclasses.field(default_factory=lambda: MappingProxyType({}))
 
 
 @dataclass(frozen=True)
@@ -216,10 +231,17 @@ class Config:
     def model_spec(self) -> mujoco.MjSpec:
         """The model as an MjSpec, with one site per mounted stream (`Mount`)."""
         spec = mujoco.MjSpec.from_file(str(self.model_path))
-        mounts = [s.mount for s in self.streams.values() if s.mount]
+        mounts = [(s.element_keys[0], s.mount) for s in self.streams.values() if s.mount]
         if mounts:
             model = load_model(self.model_path)
-            for mount in mounts:
+            for key, mount in mounts:
+                # a parent the model lacks (loaded without check_names): one line, not a crash
+                if mujoco.mj_name2id(model, _OBJ_TYPES[mount.parent_type], mount.parent) < 0:
+                    valid = ", ".join(n for n in _names(model, mount.parent_type) if n)
+                    raise ConfigError(
+                        f"{self.path}: {key}: unknown {mount.parent_type} {mount.parent!r}; "
+                        f"valid {mount.parent_type} names: {valid}"
+                    )
                 mount.add_to(spec, model)
         return spec
 
@@ -252,9 +274,10 @@ def load_config(
 ) -> Config:
     """Load and validate a config file.
 
-    `extra_sections`: top-level tables owned by other subsystems, returned raw in
-    `Config.sections`. With `check_names` (the default) every body, site, joint and actuator
-    name must exist in the model; `physfuse inspect` turns it off to list them with
+    `extra_sections`: top-level tables owned by other tools, returned raw in
+    `Config.sections` (the [estimator] and [simulate] tables need not be named: they are
+    always read, and validated). With `check_names` (the default) every body, site, joint and
+    actuator name must exist in the model; `physfuse inspect` turns it off to list them with
     `check_model_names` instead.
     """
     path = Path(path)
@@ -321,7 +344,8 @@ class _Parser:
 
     # -- top level -------------------------------------------------------------------------
     def parse(self, raw: dict[str, Any]) -> Config:
-        self.unknown_keys(raw, "", (*_TOP_KEYS, *self.extra_sections))
+        extra = tuple(name for name in self.extra_sections if name not in SECTIONS)
+        self.unknown_keys(raw, "", (*_TOP_KEYS, *SECTIONS, *extra))
         if "model" not in raw:
             raise self.error("model", "missing; name a bundled model or an MJCF file")
         model_value = self.string(raw["model"], "model")
@@ -338,7 +362,9 @@ class _Parser:
             name: self.stream(name, self.table(table, f"streams.{name}"), model)
             for name, table in streams_raw.items()
         }
-        sections = {name: raw[name] for name in self.extra_sections if name in raw}
+        sections = {name: raw[name] for name in (*SECTIONS, *extra) if name in raw}
+        self.table(sections.get("estimator", {}), "estimator")  # its keys: below
+        self.simulate(sections.get("simulate", {}))
         config = Config(
             path=self.path,
             model=model_value,
@@ -358,7 +384,23 @@ class _Parser:
                         for c in bad
                     )
                 )
+        # every [estimator] key, type and range, now rather than when an estimate starts
+        # (estimator.problem imports this module: imported here)
+        from estimator.problem import Settings
+
+        Settings.from_config(config)
         return config
+
+    def simulate(self, table: Any) -> None:
+        """[simulate]: no physfuse command reads settings from it, so that any key there
+        would be ignored without a word; each is an error instead."""
+        for key in self.table(table, "simulate"):
+            raise self.error(
+                f"simulate.{key}",
+                "not a setting; physfuse reads no settings from [simulate] (`physfuse "
+                "simulate` takes its options on the command line: see physfuse simulate --help): "
+                "remove it",
+            )
 
     def resolve_model(self, value: str) -> Path:
         candidate = Path(value)
@@ -400,6 +442,7 @@ class _Parser:
                 f"{key}.required", f"expected true or false, got {self.show(required)}"
             )
         noise = self.noise(raw.get("noise", {}), f"{key}.noise", kind)
+        max_abs = self.max_abs(raw.get("max_abs", {}), f"{key}.max_abs", kind, raw.get("field"))
         mapping = getattr(self, f"map_{kind}")(raw, key, model)
         mount = self.mount(raw, key, name, kind, mapping)
         if mount is not None:
@@ -421,6 +464,7 @@ class _Parser:
             time_offset_ns=offset,
             required=required,
             noise=MappingProxyType(noise),
+            max_abs=MappingProxyType(max_abs),
             **mapping,
         )
 
@@ -657,6 +701,24 @@ class _Parser:
                 )
             noise[name] = float(value)
         return noise
+
+    def max_abs(self, raw: Any, key: str, kind: str, field: Any) -> dict[str, float]:
+        """{component: bound} of a stream's `max_abs` table (components of its kind)."""
+        # (imported here: the reader's modules import this one)
+        from estimator.logs.measurements import STREAM_COMPONENTS
+
+        table = self.table(raw, key)
+        components = (field,) if kind == "command" and isinstance(field, str) else None
+        self.unknown_keys(table, key, components or STREAM_COMPONENTS[kind])
+        bounds = {}
+        for name, value in table.items():
+            ok = isinstance(value, int | float) and not isinstance(value, bool)
+            if not ok or math.isnan(value) or value <= 0:
+                raise self.error(
+                    f"{key}.{name}", f"expected a positive number, got {self.show(value)}"
+                )
+            bounds[name] = float(value)
+        return bounds
 
     def quaternion(self, value: Any, key: str) -> tuple[float, float, float, float]:
         ok = (

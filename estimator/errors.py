@@ -1,7 +1,5 @@
 """One exception root for physfuse; the CLI turns these into one clear line."""
 
-from pathlib import Path
-
 
 class PhysfuseError(Exception):
     """Root of every error physfuse reports to a user (bad config, model, data)."""
@@ -17,12 +15,3 @@ class LogError(PhysfuseError):
 
 class MissingTopicError(LogError):
     """A topic the config marks as required is absent from the log or has no usable sample."""
-
-
-def output_dir(path: Path) -> Path:
-    """`path` created (with its parents) for a command's --out, or a one-line error."""
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise PhysfuseError(f"--out {path}: cannot create the directory ({err.strerror})") from err
-    return path

@@ -31,6 +31,8 @@ class Estimate:
                    model needed to explain the motion (N or N·m; the setting model_error_std)
     residuals:     factor type ("physics", a stream name, …) → (T, k) whitened residuals
                    at each knot (NaN where the knot has no such factor)
+    residual_labels: factor type → (k,) what each row is: "torso_site position z" (a
+                   sensor's element and component), "root_z" (physics and priors: the dof)
     cost_by_type:  factor type → its robust cost at this trajectory
     model_name:    the model the estimate belongs to (bundled name or MJCF path)
     """
@@ -48,6 +50,7 @@ class Estimate:
     imu_bias: dict[str, np.ndarray] = field(default_factory=dict)
     model_error: dict[str, np.ndarray] = field(default_factory=dict)
     residuals: dict[str, np.ndarray] = field(default_factory=dict)
+    residual_labels: dict[str, list[str]] = field(default_factory=dict)
     cost_by_type: dict[str, float] = field(default_factory=dict)
 
     @property

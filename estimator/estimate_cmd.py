@@ -2,7 +2,10 @@
 
 Writes DIR/estimate.mcap (the `/estimate/...` topic layout), DIR/estimate.rrd (Rerun) and
 DIR/summary.json, and prints a summary — with errors against ground truth when the log has
-`/ground_truth/...` topics (a simulated log).
+`/ground_truth/...` topics (a simulated log). DIR is checked before the log is read and the
+three files are put in place together when the run completes (estimator/outputs.py): DIR
+holds one run's set, never parts of two. A viewer that cannot open (--spawn without a
+display, --serve on a busy port) is a warning: the files are written.
 """
 
 from __future__ import annotations
@@ -10,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import uuid
 from collections.abc import Mapping
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -20,10 +24,15 @@ import numpy as np
 from tqdm import tqdm
 
 from estimator.config import load_config
-from estimator.errors import LogError, output_dir
+from estimator.errors import LogError
 from estimator.estimate import Estimate
-from estimator.logs import read_log
-from estimator.model_checks import command_warnings, commands_against_efforts
+from estimator.logs import Measurement, read_log
+from estimator.model_checks import (
+    check_for_estimate,
+    command_warnings,
+    commands_against_efforts,
+)
+from estimator.outputs import OutputFolder
 from estimator.problem import CHOICES, SETTINGS, Settings
 from estimator.run import Summary, estimate, initial_trajectory
 from estimator.simulate.writer import (
@@ -35,9 +44,13 @@ from estimator.simulate.writer import (
 )
 from estimator.truth import at_times, read_ground_truth, trajectory_errors
 
+OUTPUTS = ("estimate.mcap", "estimate.rrd", "summary.json")  # one run's set, written whole
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("log", type=Path, help="ROS 2 MCAP file or rosbag2 folder")
+    parser.add_argument(
+        "log", type=Path, help="ROS 2 MCAP file, rosbag2 folder, FIFO, or - for standard input"
+    )
     parser.add_argument("--config", type=Path, required=True, help="TOML config (configs/)")
     parser.add_argument("--out", type=Path, default=Path("out/estimate"), help="output dir")
     view = parser.add_mutually_exclusive_group()
@@ -68,7 +81,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    config = load_config(args.config, extra_sections=("estimator", "simulate"))
+    config = load_config(args.config)
     settings = Settings.from_config(config)
     overrides = {
         "method": args.method,
@@ -78,54 +91,103 @@ def run(args: argparse.Namespace) -> int:
         "init": args.init,
     }
     settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None})
-    log = read_log(args.log, config)
-    # the log's, and commands that disagree with the logged efforts through the actuators
-    input_warnings = list(log.warnings) + command_warnings(
-        commands_against_efforts(config, config.load_model(), log.measurements)
-    )
-    for warning in input_warnings:
-        print(f"physfuse estimate: warning: {warning}", file=sys.stderr)
-    bar = tqdm(total=0, unit="window", disable=args.quiet or not sys.stderr.isatty())
-
-    def progress(done: int, total: int) -> None:
-        bar.total = total
-        bar.update(done - bar.n)
-
-    est, summary = estimate(config, log.measurements, settings, progress)
-    summary = replace(summary, warnings=input_warnings + summary.warnings)
-    bar.close()
-    model = config.load_model()
+    check_for_estimate(config, settings)  # the model and settings, before the log is read
     out: Path = args.out
-    output_dir(out)
-    imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
-    write_estimate_mcap(out / "estimate.mcap", est, model, imu_sites)
-    accuracy = _accuracy(args.log, model, log.measurements, est)
-    report = _report(summary, settings, accuracy, out)
-    (out / "summary.json").write_text(json.dumps(report, indent=2) + "\n")
-    _print(report, summary, input_warnings)
-    from estimator.visualize import serve_until_interrupted, write_recording
+    run_id = str(uuid.uuid4())  # in summary.json, estimate.mcap and estimate.rrd: one run's set
+    # --out checked and locked before the log is read; written whole when the run completes
+    with OutputFolder(out, OUTPUTS) as tmp:
+        log = read_log(args.log, config)
+        skipped = skipped_samples(log.measurements)
+        # the log's, and commands that disagree with the logged efforts through the actuators
+        input_warnings = list(log.warnings) + command_warnings(
+            commands_against_efforts(config, config.load_model(), log.measurements)
+        )
+        for warning in input_warnings:
+            print(f"physfuse estimate: warning: {warning}", file=sys.stderr)
+        for line in skipped_lines(skipped):
+            print(f"physfuse estimate: {line}", file=sys.stderr)
+        bar = tqdm(total=0, unit="window", disable=args.quiet or not sys.stderr.isatty())
 
-    write_recording(est, model, log, path=out / "estimate.rrd", spawn=args.spawn, serve=args.serve)
-    print(f"outputs: {out / 'estimate.mcap'}, {out / 'estimate.rrd'}, {out / 'summary.json'}")
+        def progress(done: int, total: int) -> None:
+            bar.total = total
+            bar.update(done - bar.n)
+
+        est, summary = estimate(config, log.measurements, settings, progress)
+        summary = replace(summary, warnings=input_warnings + summary.warnings)
+        bar.close()
+        model = config.load_model()
+        imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
+        write_estimate_mcap(tmp / "estimate.mcap", est, model, imu_sites, run_id)
+        accuracy = _accuracy(args.log, model, log.measurements, est)
+        lost = [asdict(x) for x in log.lost]
+        report = _report(summary, settings, accuracy, out, run_id, skipped, lost)
+        from estimator.visualize import (
+            ViewerError,
+            serve_until_interrupted,
+            show_recording,
+            write_recording,
+        )
+
+        write_recording(est, model, log, path=tmp / "estimate.rrd", recording_id=run_id)
+        (tmp / "summary.json").write_text(json.dumps(report, indent=2) + "\n")
+    _print(report, summary, input_warnings)
+    print(f"outputs: {', '.join(str(out / n) for n in OUTPUTS)}")
     print(f"open the recording with: rerun {out / 'estimate.rrd'}")
+    if args.spawn or args.serve:
+        try:  # the outputs are complete: a viewer that cannot open is only a warning
+            show_recording(est, model, out / "estimate.rrd", spawn=args.spawn, serve=args.serve)
+        except ViewerError as err:
+            rrd = out / "estimate.rrd"
+            print(f"physfuse estimate: warning: {err} (written: rerun {rrd})", file=sys.stderr)
+            return 0
     if args.serve:
         serve_until_interrupted()
     return 0
 
 
+def skipped_samples(measurements: Mapping[str, Measurement]) -> dict[str, dict[str, Any]]:
+    """Per stream: the samples kept, those skipped and why (the counts `inspect` shows)."""
+    return {
+        name: {
+            "kept": len(m),
+            "skipped": m.bad.total,
+            "by_reason": {k: v for k, v in m.bad.as_dict().items() if v},
+        }
+        for name, m in measurements.items()
+    }
+
+
+def skipped_lines(skipped: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """One line per stream with skipped samples, e.g.
+    `imu: skipped 3 of 2000 samples (backwards_time=2, nan=1)`."""
+    return [
+        f"{name}: skipped {s['skipped']} of {s['kept'] + s['skipped']} samples ("
+        + ", ".join(f"{k}={v}" for k, v in s["by_reason"].items())
+        + ")"
+        for name, s in skipped.items()
+        if s["skipped"]
+    ]
+
+
 def write_estimate_mcap(
-    path: Path, est: Estimate, model: mujoco.MjModel, imu_sites: Mapping[str, str] | None = None
+    path: Path,
+    est: Estimate,
+    model: mujoco.MjModel,
+    imu_sites: Mapping[str, str] | None = None,
+    run_id: str = "",
 ) -> int:
     """The estimate in the `/estimate/...` layout, one state per knot, and each IMU stream's
     bias (`/estimate/imu_bias/<stream>`, frame: its site from `imu_sites`, stream → site);
-    metadata `physfuse.estimate` names the model. Returns the message count."""
+    metadata `physfuse.estimate` names the model and the run (`run_id`, also in summary.json).
+    Returns the message count."""
     layout = StateLayout.of(model)
     data = mujoco.MjData(model)
     free = [j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
     sites = imu_sites or {}
     count = 0
     with Ros2Writer(path) as writer:
-        writer.add_metadata("physfuse.estimate", {"model": est.model_name, "h": repr(est.h)})
+        metadata = {"model": est.model_name, "h": repr(est.h), "run_id": run_id}
+        writer.add_metadata("physfuse.estimate", metadata)
         for k in range(est.T):
             state_data(model, est.qpos[k], est.qvel[k], data)
             covariance = {}
@@ -168,14 +230,22 @@ def _accuracy(
 
 
 def _report(
-    summary: Summary, settings: Settings, accuracy: dict | None, out: Path
+    summary: Summary,
+    settings: Settings,
+    accuracy: dict | None,
+    out: Path,
+    run_id: str,
+    skipped: dict[str, dict[str, Any]],
+    lost: list[dict[str, Any]],
 ) -> dict[str, Any]:
-    report = asdict(summary)
+    report = {"run_id": run_id, **asdict(summary)}
     report["settings"] = asdict(settings)
     report["setting_meanings"] = {k: v[1] for k, v in SETTINGS.items()}
     report["accuracy_vs_ground_truth"] = accuracy
-    report["warnings"] = summary.warnings
-    report["outputs"] = [str(out / n) for n in ("estimate.mcap", "estimate.rrd", "summary.json")]
+    report["warnings"] = summary.warnings  # the log's first, then the estimate's
+    report["skipped_samples"] = skipped
+    report["lost"] = list(lost)  # damaged or missing stretches of the log (LostData)
+    report["outputs"] = [str(out / n) for n in OUTPUTS]
     return report
 
 

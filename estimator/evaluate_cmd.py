@@ -32,7 +32,7 @@ import numpy as np
 from tqdm import tqdm
 
 from estimator.config import MOCAP_KINDS, Config, load_config
-from estimator.errors import LogError, PhysfuseError, output_dir
+from estimator.errors import LogError, PhysfuseError
 from estimator.evaluate import (
     SUMMARY_KEYS,
     channel_errors,
@@ -42,6 +42,8 @@ from estimator.evaluate import (
     json_ready,
 )
 from estimator.logs import Measurement, read_log
+from estimator.model_checks import check_for_estimate
+from estimator.outputs import OutputFile
 from estimator.problem import (
     KnotModel,
     Settings,
@@ -81,31 +83,39 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    out = _out(args)
+    with OutputFile(out / "metrics.json") as tmp:  # checked and locked before the work
+        if args.holdout is not None:
+            report = holdout(args.input, args.config, args.holdout, quiet=args.quiet)
+        else:
+            config = _config(args.config) if args.config is not None else None
+            report = against_truth(args.input, args.truth, config, args.estimate_prefix)
+        tmp.write_text(json.dumps(json_ready(report), indent=2) + "\n")
+    if args.holdout is not None:
+        _print_holdout(report["holdout"])
+    else:
+        _print_truth(report)
+    print(f"wrote {out / 'metrics.json'}")
+    return 0
+
+
+def _out(args: argparse.Namespace) -> Path:
+    """The output folder, once the options are known to fit together."""
     if args.holdout is not None:
         if args.truth is not None:
             raise PhysfuseError("--holdout estimates the log itself: drop --truth")
         if args.config is None:
             raise PhysfuseError("--holdout needs the log's --config CONFIG")
-        report = holdout(args.input, args.config, args.holdout, quiet=args.quiet)
-        out = args.out or Path("out/evaluate") / f"{args.input.stem}_holdout_{args.holdout}"
-        _print_holdout(report["holdout"])
-    else:
-        if args.truth is None:
-            raise PhysfuseError(
-                "give --truth LOG (a log with ground truth), or --holdout STREAM with --config"
-            )
-        config = _config(args.config) if args.config is not None else None
-        report = against_truth(args.input, args.truth, config, args.estimate_prefix)
-        out = args.out or args.input.parent
-        _print_truth(report)
-    output_dir(out)
-    (out / "metrics.json").write_text(json.dumps(json_ready(report), indent=2) + "\n")
-    print(f"wrote {out / 'metrics.json'}")
-    return 0
+        return args.out or Path("out/evaluate") / f"{args.input.stem}_holdout_{args.holdout}"
+    if args.truth is None:
+        raise PhysfuseError(
+            "give --truth LOG (a log with ground truth), or --holdout STREAM with --config"
+        )
+    return args.out or args.input.parent
 
 
 def _config(path: Path) -> Config:
-    return load_config(path, extra_sections=("estimator", "simulate"))
+    return load_config(path)
 
 
 # -- against ground truth -------------------------------------------------------------------------
@@ -115,8 +125,10 @@ def against_truth(
     """metrics.json of an estimate file against a log's ground truth (see module docstring)."""
     est = read_state_topics(estimate_path, prefix)
     truth = read_state_topics(truth_path, PREFIX)
+    notes = shared_states(est, truth)  # (an error where they share nothing to compare)
+    for note in notes:
+        print(f"physfuse evaluate: warning: {note}", file=sys.stderr)
     model = config.load_model() if config is not None else _model_of(estimate_path, truth_path)
-    notes = []
     est = _renamed_imus(est, truth, config, read_metadata(truth_path))
     occlusions = raw = None
     if config is not None:
@@ -142,6 +154,60 @@ def against_truth(
         "details": metrics,
         "notes": notes,
     }
+
+
+def shared_states(est: StateTopics, truth: StateTopics) -> list[str]:
+    """Check that an estimate and a truth share bodies (odometry) or joints over a common
+    time, which every metric needs: a PhysfuseError naming both files and what each has where
+    they do not (its metrics would all be NaN); one warning per side with bodies or joints
+    the other lacks (left out of the metrics)."""
+    bodies = [b for b in est.odometry if b in truth.odometry]
+    joints = [j for j in est.joint_names if j in truth.joint_names]
+    if not bodies and not joints:
+        raise PhysfuseError(
+            f"{est.path} and {truth.path} share no body or joint to compare (an estimate of "
+            f"another robot or model?): {est.path} ({est.prefix}) has {_contents(est)}; "
+            f"{truth.path} ({truth.prefix}) has {_contents(truth)}"
+        )
+    spans = [(est.odometry[b].t_ns, truth.odometry[b].t_ns) for b in bodies]
+    if joints and est.joints is not None and truth.joints is not None:
+        spans.append((est.joints.t_ns, truth.joints.t_ns))
+    if not any(e[0] <= t[-1] and t[0] <= e[-1] for e, t in spans):
+        e, t = spans[0]
+        raise PhysfuseError(
+            f"{est.path} and {truth.path} share no time (an estimate of another log?): the "
+            f"estimate's states span {e[0] / 1e9:.3f}–{e[-1] / 1e9:.3f} s, the truth's "
+            f"{t[0] / 1e9:.3f}–{t[-1] / 1e9:.3f} s (header stamps)"
+        )
+    warnings = []
+    for side, states, other in (("estimate", est, truth), ("truth", truth, est)):
+        only_bodies = [b for b in states.odometry if b not in other.odometry]
+        only_joints = [j for j in states.joint_names if j not in other.joint_names]
+        if only_bodies or only_joints:
+            what = "; ".join(
+                f"{kind} {_listed(names)}"
+                for kind, names in (("bodies", only_bodies), ("joints", only_joints))
+                if names
+            )
+            warnings.append(
+                f"only the {side} ({states.path}) has {what}: left out; the metrics compare the "
+                f"{len(bodies)} bodies and {len(joints)} joints both have"
+            )
+    return warnings
+
+
+def _contents(states: StateTopics) -> str:
+    """'bodies a, b; joints c, d, … (12)' of a state file."""
+    bodies = _listed(list(states.odometry)) if states.odometry else "none"
+    joints = _listed(list(states.joint_names)) if states.joint_names else "none"
+    return f"bodies {bodies}; joints {joints}"
+
+
+def _listed(names: list[str], most: int = 6) -> str:
+    """Up to `most` names, then how many there are."""
+    if len(names) <= most:
+        return ", ".join(names)
+    return ", ".join(names[:most]) + f", … ({len(names)})"
 
 
 def _model_of(*paths: Path) -> mujoco.MjModel:
@@ -311,6 +377,7 @@ def holdout(log_path: Path, config_path: Path, stream: str, quiet: bool = True) 
         config, streams=MappingProxyType({k: v for k, v in config.streams.items() if k != stream})
     )
     settings = Settings.from_config(config)
+    check_for_estimate(reduced, settings)
     log = read_log(log_path, config)
     held = log.measurements[stream]
     if not len(held):

@@ -5,7 +5,10 @@ largest gap, bad samples by reason, and the sender's clock against the recorder'
 header.stamp − log time). With a config: what each stream extracted, and a checklist of
 every mapped topic, body, site, joint and actuator — found in the log and the model, or
 MISSING. A truncated log gets a warning line and is still reported. Exit status 0 when
-everything required is present, 2 (with one error line) otherwise.
+everything required is present, 2 (with one error line) otherwise. A config `physfuse
+estimate` cannot run (a model option the engine does not support, an actuator commands
+cannot drive, a bad [estimator] setting) is that error line before the log is read, as it
+is for estimate (`estimator.model_checks.check_for_estimate`).
 """
 
 from __future__ import annotations
@@ -30,17 +33,19 @@ from estimator.model_checks import (
     ContactSetting,
     RestingDepth,
     actuator_rows,
+    check_for_estimate,
     command_warnings,
     commands_against_efforts,
     contact_settings,
     resting_penetration,
 )
 from estimator.problem import Settings
-from physics.errors import UnsupportedModelError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("log", type=Path, help="MCAP file or rosbag2 folder")
+    parser.add_argument(
+        "log", type=Path, help="MCAP file, rosbag2 folder, FIFO, or - for standard input"
+    )
     parser.add_argument(
         "--config", type=Path, help="config TOML: also check every mapped topic and name"
     )
@@ -59,11 +64,9 @@ class CheckItem:
 
 
 def run(args: argparse.Namespace) -> int:
-    config = (
-        load_config(args.config, check_names=False, extra_sections=("estimator", "simulate"))
-        if args.config
-        else None
-    )
+    config = load_config(args.config, check_names=False) if args.config else None
+    if config is not None:  # what estimate would fail on, before the log is read
+        check_for_estimate(config)
     log = read_log(args.log, config, decode_all=True, require=False)
     checks = _checklist(log, config) if config is not None else []
     model = _model_facts(log, config, checks) if config is not None else None
@@ -207,10 +210,11 @@ def _model_facts(log: Log, config: Config, checks: list[CheckItem]) -> ModelFact
         return None
     settings = Settings.from_config(config)
     model = config.load_model()
-    try:
-        settings.apply_softness(model)
-    except UnsupportedModelError as err:
-        raise ConfigError(f"{config.path}: estimator.{err}") from None
+    # the softness as the estimate's, whose step is h (κ ≥ 2h: checked by check_for_estimate)
+    timestep = model.opt.timestep
+    model.opt.timestep = settings.h or timestep
+    settings.apply_softness(model)
+    model.opt.timestep = timestep
     overrides = {
         name: value
         for name in ("softness_eps", "softness_kappa")
@@ -438,6 +442,7 @@ def _as_json(log: Log, config: Config | None, checks: list[CheckItem]) -> dict[s
         "log": log.source,
         "truncated": log.truncated,
         "warnings": list(log.warnings),
+        "lost": [asdict(x) for x in log.lost],  # damaged or missing stretches (LostData)
         "topics": [_topic_json(s) for s in log.topics.values()],
     }
     if config is not None:

@@ -1,5 +1,6 @@
-"""What the model says before anything is estimated: its actuators, its contact settings and
-how deep they let the robot sink, and whether the logged commands agree with the logged
+"""What the model says before anything is estimated: whether `physfuse estimate` can use it
+with the config's settings at all (`check_for_estimate`), its actuators, its contact settings
+and how deep they let the robot sink, and whether the logged commands agree with the logged
 joint efforts through those actuators. Used by `physfuse inspect --config` and `estimate`.
 """
 
@@ -11,11 +12,73 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from estimator.actuation import actuator_kind, commanded_force, unsupported_reason
+from estimator.actuation import (
+    actuator_kind,
+    check_commanded,
+    commanded_force,
+    unsupported_reason,
+)
 from estimator.config import Config
+from estimator.errors import ConfigError
 from estimator.logs.measurements import Measurement
+from estimator.problem import Settings, _setting_named
+from physics.dynamics import Path as EnginePath
+from physics.dynamics import check_model
+from physics.errors import UnsupportedModelError
+from physics.softness import Softness
 
 _OBJ = mujoco.mjtObj
+
+
+# -- what estimate needs ----------------------------------------------------------------------
+def check_for_estimate(config: Config, settings: Settings | None = None) -> None:
+    """Every model and setting problem `physfuse estimate` would meet with this config, found
+    before a log is read: a ConfigError naming the config, the model file, the option, what
+    is expected and how to fix it. settings: those the estimate runs with (default: the
+    config's [estimator] table)."""
+    settings = settings or Settings.from_config(config)
+    model = config.load_model()
+    where = f"{config.path}: model {config.model_path}"
+    # the engine's requirements on the model's options (friction cone, integrator, noslip,
+    # override): every method reports its forces through the native analytic inverse, and
+    # the smoother's residuals go through the reference path when estimator.path says so
+    paths: list[EnginePath] = ["native"]
+    if settings.method in ("physics", "kinematic") and settings.path == "reference":
+        paths.append("reference")
+    for path in paths:
+        try:
+            check_model(model, path)
+        except UnsupportedModelError as err:
+            on = "" if path == "native" else " (for estimator.path = 'reference')"
+            raise ConfigError(f"{where}: {err}{on}") from None
+    # commands turn into forces through the actuators they name (names the model lacks are
+    # the checklist's of `physfuse inspect`, or an error of load_config)
+    for name, stream in config.streams.items():
+        if stream.kind == "command":
+            ids = [mujoco.mj_name2id(model, _OBJ.mjOBJ_ACTUATOR, a) for a in stream.elements]
+            check_commanded(model, [i for i in ids if i >= 0], f"{config.path}: streams.{name}")
+    # the softness settings on the estimate's model: its timestep the knot step h
+    model.opt.timestep = settings.h or model.opt.timestep
+    try:
+        settings.apply_softness(model)
+    except UnsupportedModelError as err:  # κ below 2h
+        raise ConfigError(f"{config.path}: estimator.{_setting_named(err)}") from None
+    if "reference" in paths:
+        try:
+            Softness.of_model(model)
+        except UnsupportedModelError as err:
+            raise ConfigError(
+                f"{where}: {err}; estimator.path = 'reference' takes one flat contact softness "
+                "for the whole model: use path = 'native', or set softness_eps and "
+                "softness_kappa in [estimator]"
+            ) from None
+    fits = settings.fit_softness == "first_window" and settings.method == "physics"
+    if fits and not settings.sets_softness and settings.model_softness_std == 0:
+        raise ConfigError(
+            f"{config.path}: estimator.model_softness_std = 0 gives fit_softness = "
+            "'first_window' no prior to fit the contact softness against; set "
+            "model_softness_std > 0 (default 0.1), or fit_softness = 'none'"
+        )
 
 
 # -- actuators ---------------------------------------------------------------------------------

@@ -41,7 +41,7 @@ import numpy as np
 
 from estimator.actuation import check_commanded, commanded_force, moment_dense
 from estimator.config import Config, StreamConfig
-from estimator.errors import ConfigError
+from estimator.errors import ConfigError, LogError
 from estimator.logs.align import resample
 from estimator.logs.measurements import Measurement
 from physics.dynamics import make_dynamics
@@ -80,7 +80,15 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
         "robust kernel of force/torque sensors, predicted through the contact model",
     ),
     "window_s": (4.0, "length of one smoothing window, s"),
-    "overlap_s": (0.5, "overlap of consecutive windows, s"),
+    "overlap_s": (
+        0.5,
+        "look-ahead of a window: the knots past those it keeps, re-solved by the next, s",
+    ),
+    "backward_windows": (
+        4,
+        "windows a backward pass reaches: each follows the keys the next one moved, through "
+        "its marginalized past (0: none)",
+    ),
     "max_iterations": (30, "Levenberg–Marquardt iterations per solve (a window has up to 3)"),
     "init": (
         "best",
@@ -176,6 +184,7 @@ class Settings:
     force_sensor_kernel: str = "cauchy"
     window_s: float = 4.0
     overlap_s: float = 0.5
+    backward_windows: int = 4
     max_iterations: int = 30
     init: str = "best"
     tolerance: float = 1e-3
@@ -221,34 +230,20 @@ class Settings:
 
     @classmethod
     def from_config(cls, config: Config) -> Settings:
-        """Read the optional [estimator] table; unknown keys and bad values name themselves."""
-        table = dict(config.sections.get("estimator", {}))
-        unknown = sorted(set(table) - set(SETTINGS))
+        """Read the optional [estimator] table; unknown keys and bad values name themselves
+        (`load_config` runs this, so that a bad setting fails before anything is read)."""
+        table = config.sections.get("estimator", {})
+        if not isinstance(table, Mapping):
+            raise ConfigError(
+                f"{config.path}: estimator = {table!r}; expected a table [estimator] of settings"
+            )
+        unknown = [key for key in table if key not in SETTINGS]
         if unknown:
             raise ConfigError(
                 f"{config.path}: estimator.{unknown[0]} is not a setting "
                 f"(settings: {', '.join(SETTINGS)})"
             )
-        values: dict[str, Any] = {}
-        for key, value in table.items():
-            default = SETTINGS[key][0]
-            if isinstance(default, str):
-                if value not in CHOICES[key]:
-                    raise ConfigError(
-                        f"{config.path}: estimator.{key} = {value!r}; expected one of "
-                        + ", ".join(repr(c) for c in CHOICES[key])
-                    )
-            elif not isinstance(value, int | float) or isinstance(value, bool) or value < 0:
-                raise ConfigError(
-                    f"{config.path}: estimator.{key} = {value!r}; expected a number ≥ 0 "
-                    f"({SETTINGS[key][1]})"
-                )
-            values[key] = int(value) if isinstance(default, int) else value
-        for key in ("softness_eps_scale", "softness_kappa_scale"):
-            if key in values and not values[key] > 0:
-                raise ConfigError(
-                    f"{config.path}: estimator.{key} = {values[key]!r}; expected a factor > 0"
-                )
+        values = {key: _setting_value(config, key, value) for key, value in table.items()}
         settings = cls(**values)
         try:  # validates ε and κ
             Softness(
@@ -264,6 +259,51 @@ class Settings:
         except UnsupportedModelError as err:
             raise ConfigError(f"{config.path}: estimator.{_setting_named(err)}") from None
         return settings
+
+
+# numeric settings that must be > 0: σ, thresholds, lengths and steps that divide or scale (the
+# others may be 0, which means none, exact or the model's own)
+POSITIVE_SETTINGS = frozenset(
+    {
+        "physics_std_unactuated",
+        "physics_std_actuated",
+        "accel_prior_std",
+        "huber_k",
+        "window_s",
+        "max_iterations",
+        "model_error_walk",
+        "softness_kappa",
+        "softness_eps_scale",
+        "softness_kappa_scale",
+        "fit_softness_s",
+        "bias_prior_accel",
+        "bias_prior_gyro",
+        "fd_eps",
+    }
+)
+
+
+def _setting_value(config: Config, key: str, value: Any) -> Any:
+    """One [estimator] value checked against its setting's type and range (ConfigError)."""
+    default, meaning = SETTINGS[key]
+    where = f"{config.path}: estimator.{key} = {value!r}"
+    if key in CHOICES:
+        if not isinstance(value, str) or value not in CHOICES[key]:
+            raise ConfigError(f"{where}; expected one of " + ", ".join(map(repr, CHOICES[key])))
+        return value
+    if isinstance(default, int) and not isinstance(default, bool):  # a count
+        least = 0 if key == "backward_windows" else 1
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise ConfigError(f"{where}; expected an integer ≥ {least} ({meaning})")
+        return value
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    what = "a factor" if key.endswith("_scale") else "a number"
+    bound = "> 0" if key in POSITIVE_SETTINGS else "≥ 0"
+    if not number or not math.isfinite(value) or value < 0:
+        raise ConfigError(f"{where}; expected {what} {bound} ({meaning})")
+    if value == 0 and key in POSITIVE_SETTINGS:
+        raise ConfigError(f"{where}; expected {what} > 0 ({meaning})")
+    return float(value)
 
 
 def _setting_named(err: UnsupportedModelError) -> str:
@@ -291,6 +331,7 @@ class SensorBlock:
              measurement is at the knot's time (interpolated to it, or averaged)
     slot:    which of a knot's samples (0: its first; a stream faster than the knots has
              several blocks)
+    labels:  (n_res,) what each residual row is: element and component ("torso position z")
     """
 
     stream: str
@@ -304,6 +345,7 @@ class SensorBlock:
     kernel: str = "sensor_kernel"
     alpha: np.ndarray | None = None
     slot: int = 0
+    labels: tuple[str, ...] = ()
 
     def elements(self) -> list[SensorBlock]:
         """One block per element (per `group` rows); [self] for a one-element block."""
@@ -321,6 +363,7 @@ class SensorBlock:
                 if self.bias is None
                 else slice(self.bias.start + i, self.bias.start + i + g),
                 group=0,
+                labels=self.labels[i : i + g],
             )
             for i in range(0, len(self.rows), g)
         ]
@@ -420,17 +463,29 @@ def _add_sensors(spec: mujoco.MjSpec, stream: StreamConfig) -> list[str]:
     return added
 
 
+MAX_KNOTS = 50_000_000  # 28 h at 2 ms: more is a clock mismatch, and would not fit in memory
+
+
 def knot_grid(measurements: Mapping[str, Measurement], h: float) -> np.ndarray:
     """(T,) knot times spanning the measured streams (commands excluded), step h."""
-    starts, ends = [], []
-    for m in measurements.values():
-        if len(m) and m.kind != "command":
-            starts.append(int(m.t_ns[0]))
-            ends.append(int(m.t_ns[-1]))
-    if not starts:
+    spans = {
+        m.stream: (int(m.t_ns[0]), int(m.t_ns[-1]))
+        for m in measurements.values()
+        if len(m) and m.kind != "command"
+    }
+    if not spans:
         raise ConfigError("no measurements to estimate from: every mapped stream is empty")
     step = round(h * 1e9)
-    return np.arange(min(starts), max(ends) + 1, step, dtype=np.int64)
+    start = min(a for a, _ in spans.values())
+    end = max(b for _, b in spans.values())
+    if (end - start) // step >= MAX_KNOTS:  # streams on different clocks, not a long log
+        each = ", ".join(f"{name} {a / 1e9:.3f}–{b / 1e9:.3f} s" for name, (a, b) in spans.items())
+        raise LogError(
+            f"the streams span {(end - start) / 1e9:.6g} s, over {MAX_KNOTS:.0e} knots of "
+            f"{h * 1e3:g} ms ({each}); are they on different clocks? Align them with a "
+            "stream's time_offset_ns, or read the recorder's times with stamp = \"log\""
+        )
+    return np.arange(start, end + 1, step, dtype=np.int64)
 
 
 def build_problem(
@@ -481,11 +536,11 @@ def build_problem(
             )
         if stream.kind in ("pose", "tf", "rigid_bodies"):
             for slot, (values, alpha) in enumerate(slots):  # values (T, E, 7)
-                for e in range(len(stream.elements)):
+                for e, element in enumerate(stream.elements):
                     pos_rows, quat_rows = adr[2 * e], adr[2 * e + 1]
-                    for kind, rows, part, std in (
-                        ("vector", pos_rows, slice(0, 3), noise["position_std_m"]),
-                        ("quat", quat_rows, slice(3, 7), noise["orientation_std_rad"]),
+                    for kind, rows, part, std, quantity in (
+                        ("vector", pos_rows, slice(0, 3), noise["position_std_m"], "position"),
+                        ("quat", quat_rows, slice(3, 7), noise["orientation_std_rad"], "rotation"),
                     ):
                         blocks.append(
                             SensorBlock(
@@ -496,6 +551,7 @@ def build_problem(
                                 np.full(3, std),
                                 alpha=alpha,
                                 slot=slot,
+                                labels=_labels(element, quantity),
                             )
                         )
         elif stream.kind in ("markers", "joint_state"):  # a group per marker (3 rows), joint (1)
@@ -513,6 +569,13 @@ def build_problem(
                         group=g,
                         alpha=alpha,
                         slot=slot,
+                        labels=tuple(
+                            label
+                            for element in stream.elements
+                            for label in (
+                                _labels(element, "") if g == 3 else (f"{element} position",)
+                            )
+                        ),
                     )
                 )
         elif stream.kind == "imu":
@@ -527,6 +590,7 @@ def build_problem(
                 (noise["accel_std"], noise["gyro_std"]),
                 ("acc", "vel"),
                 nb,
+                ("accel", "gyro"),
             )
             imu_streams.append(name)
             walks.append(
@@ -547,6 +611,7 @@ def build_problem(
                 (noise["force_std"], noise["torque_std"]),
                 ("acc", "acc"),
                 nb,
+                ("force", "torque"),
                 kernel="force_sensor_kernel",
             )
             walks.append(
@@ -598,6 +663,7 @@ def _biased_pair(
     std: tuple[float, float],
     stages: tuple[str, str],
     nb: int,
+    quantities: tuple[str, str],
     kernel: str = "sensor_kernel",
 ) -> list[SensorBlock]:
     """The two 3-axis halves of an IMU (accelerometer, gyro) or a force/torque sensor, with
@@ -613,9 +679,16 @@ def _biased_pair(
             slice(nb + 3 * i, nb + 3 * i + 3),
             stages[i],
             kernel=kernel,
+            labels=_labels("", quantities[i]),
         )
         for i in range(2)
     ]
+
+
+def _labels(element: str, quantity: str) -> tuple[str, ...]:
+    """Labels of a 3-axis residual: "<element> <quantity> x", … (either may be empty)."""
+    prefix = " ".join(w for w in (element, quantity) if w)
+    return tuple(f"{prefix} {axis}".strip() for axis in "xyz")
 
 
 def joint_name(model: mujoco.MjModel, j: int) -> str:

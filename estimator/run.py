@@ -1,5 +1,7 @@
-"""Estimation of a whole log: initialize from the measurements, smooth in overlapping windows,
-stitch, and collect the forces, contacts, uncertainty and residuals of the result."""
+"""Estimation of a whole log: initialize from the measurements, sweep a sliding window over it
+(each window's past marginalized into a prior on the next one's first keys, and the windows
+before following what the next one moved), and collect the forces, contacts, uncertainty and
+residuals of the result."""
 
 from __future__ import annotations
 
@@ -25,13 +27,19 @@ from estimator.problem import (
     build_problem,
     dof_names,
     interpolated_at_knots,
-    joint_name,
     knot_grid,
     model_with_sensors,
     u_known_along,
     velocities,
 )
-from estimator.smoother import Linearizer, fit_softness, solve_window, with_covariance
+from estimator.smoother import (
+    Linearizer,
+    MarginalPrior,
+    fit_softness,
+    follow,
+    solve_window,
+    with_covariance,
+)
 from physics.dynamics import make_dynamics
 from physics.model import weight as model_weight
 
@@ -62,6 +70,8 @@ class Summary:
     kept_starts: list[str] = field(default_factory=list)
     # fit_softness: the factors on the model's own ε and κ the first window gave, their σ
     softness_fit: dict[str, float] = field(default_factory=dict)
+    # the knot where each window's kept estimate begins (a join between windows: the next)
+    window_starts: list[int] = field(default_factory=list)
 
 
 PASS_COUNTS = ("linearizations", "evaluations", "knots_linearized", "knots_evaluated")
@@ -102,7 +112,6 @@ def smooth(
     qpos0 = initial_trajectory(model, measurements, t_ns)
     W = max(8, round(settings.window_s / h))
     overlap = min(W // 2, max(4, round(settings.overlap_s / h)))
-    starts = list(range(0, max(T - overlap, 1), W - overlap))
     qpos = qpos0.copy()
     nb = None
     bias: np.ndarray | None = None
@@ -110,7 +119,6 @@ def smooth(
     iterations, converged = [], []
     warnings: list[str] = []
     passes = dict.fromkeys(PASS_COUNTS, 0)
-    kept_until = 0
     kept_starts: list[str] = []
     fitted: dict[str, float] = {}
     if (
@@ -124,8 +132,20 @@ def smooth(
         settings, fitted = _fit_softness(
             config, measurements, settings, t_ns[:span], qpos0, compiled
         )
-    for i, s in enumerate(starts):
+    # The sweep: window i solves keys [s, e) with the marginal prior of the knots before s,
+    # keeps [s, s + a) and hands keys s + a … on to the next window (with its past
+    # marginalized onto them): its last `overlap` knots only look ahead for the kept ones.
+    n_shared = (4 if settings.jerk_prior_std > 0 else 3) - 1  # keys two windows' rows share
+    total = max(1, -(-(T - W) // max(W - overlap - n_shared, 1)) + 1)
+    prior = None
+    s, i = 0, 0
+    window_starts = []
+    history: list[_Joined] = []  # the last windows: where each starts, the prior it received
+    while True:
+        window_starts.append(s)
         e = min(T, s + W)
+        last = e == T
+        a = e - s if last else max(1, e - s - overlap - n_shared)  # the next window's start
         window = {name: samples_within(m, t_ns[s], t_ns[e - 1]) for name, m in measurements.items()}
         problem = build_problem(config, window, settings, t_ns[s:e], compiled)
         if nb is None:
@@ -133,12 +153,11 @@ def smooth(
             bias = np.zeros((T, nb))
         assert bias is not None
         init_q = qpos[s:e].copy()
-        init_q[: max(0, kept_until - s)] = qpos[s:kept_until]
         init_b = bias[s:e].copy()
         stages = []
-        last = e == T
-        keep_from = s if i == 0 else s + overlap // 2
-        keep_to = e if last else e - overlap // 2
+        shared = (init_q[:n_shared], init_b[:n_shared])  # as the previous window left them
+        history.append(_Joined(s, prior))
+        del history[: -settings.backward_windows - 1]
         starts_at = {"measurements": (init_q, init_b)}  # where the physics solve starts
         if settings.init in ("kinematic", "best") and settings.method == "physics":
             # (its bias dims are the physics problem's first: no model-error offset)
@@ -154,20 +173,31 @@ def smooth(
             else:
                 starts_at = {"kinematic": kinematic, **starts_at}
         solved = {
-            name: solve_window(problem, q0, b0, covariance=False)
+            name: solve_window(problem, q0, b0, False, prior=prior, marginalize=None if last else a)
             for name, (q0, b0) in starts_at.items()
         }
         stages += solved.values()
         # "best": the solution of lower cost; its covariance alone
         kept = min(solved, key=lambda name: solved[name].cost_final)
         kept_starts.append(kept)
-        result = with_covariance(solved[kept], range(keep_from - s, keep_to - s), problem)
-        qpos[keep_from:keep_to] = result.qpos[keep_from - s : keep_to - s]
-        bias[keep_from:keep_to] = result.bias[keep_from - s : keep_to - s]
-        std[keep_from:keep_to] = result.qpos_std[keep_from - s : keep_to - s]
-        if keep_to < T:  # the next window starts from this one's solution
-            qpos[keep_to:e] = result.qpos[keep_to - s :]
-        kept_until = keep_to
+        result = with_covariance(solved[kept], range(0, a), problem)
+        # the windows before follow the keys this one moved (a backward pass, linearized)
+        moved, now = shared, (result.qpos[:n_shared], result.bias[:n_shared])
+        for later, earlier in zip(reversed(history), reversed(history[:-1]), strict=False):
+            assert later.prior is not None
+            kept_keys = slice(earlier.start, later.start)
+            its_first = slice(earlier.start, earlier.start + n_shared)
+            before = (qpos[its_first].copy(), bias[its_first].copy())
+            qpos[kept_keys], bias[kept_keys] = follow(
+                model, later.prior, moved, now, (qpos[kept_keys], bias[kept_keys])
+            )
+            moved, now = before, (qpos[its_first], bias[its_first])
+        qpos[s : s + a] = result.qpos[:a]
+        bias[s : s + a] = result.bias[:a]
+        std[s : s + a] = result.qpos_std[:a]
+        qpos[s + a : e] = result.qpos[a:]  # the next window starts from this one's solution
+        bias[s + a : e] = result.bias[a:]
+        prior = result.next_prior
         warnings.extend(f"window {i + 1}: {w}" for w in result.warnings)
         iterations.append(sum(r.iterations for r in stages))  # every solve's count
         for r in stages:
@@ -176,16 +206,27 @@ def smooth(
             passes["knots_linearized"] += r.linearizations * (e - s - 2)
             passes["knots_evaluated"] += r.evaluations * (e - s - 2)
         converged.append(result.converged)
+        i += 1
         if progress:
-            progress(i + 1, len(starts))
+            progress(i, max(total, i))
         if last:
             break
+        s += a
     assert bias is not None
     full = build_problem(config, measurements, settings, t_ns, compiled)
     est, summary = finish(
         config, full, qpos, bias, std, start, iterations, converged, warnings, passes, kept_starts
     )
-    return est, replace(summary, softness_fit=fitted)
+    return est, replace(summary, softness_fit=fitted, window_starts=window_starts)
+
+
+@dataclass(frozen=True)
+class _Joined:
+    """A window of the sweep, for the backward pass: its first key, and the marginal prior
+    it received (whose gain moves the previous window's kept keys)."""
+
+    start: int
+    prior: MarginalPrior | None
 
 
 def _fit_softness(
@@ -258,7 +299,7 @@ def finish(
         iterations=iterations,
         converged=converged,
         cost_by_type=est.cost_by_type,
-        largest_residuals=largest_residuals(est, problem),
+        largest_residuals=largest_residuals(est),
         wall_time_s=time.perf_counter() - start,
         warnings=warnings,
         model_error_mean={dof: float(np.mean(e)) for dof, e in est.model_error.items()},
@@ -475,8 +516,32 @@ def collect_estimate(
         imu_bias=imu_bias,
         model_error=model_error,
         residuals=residuals,
+        residual_labels=residual_labels(problem, residuals),
         cost_by_type=cost_by_type,
     )
+
+
+def residual_labels(problem: Problem, residuals: dict[str, np.ndarray]) -> dict[str, list[str]]:
+    """What each row of `residuals_by_type` is: a sensor's element and component (its first
+    slot's blocks, in order), the dof for physics and priors; "row j" where unknown."""
+    dofs = dof_names(problem.model)
+    labels: dict[str, list[str]] = {}
+    for block in problem.blocks:
+        if block.slot == 0:
+            labels.setdefault(block.stream, []).extend(block.labels)
+    out = {}
+    for name, r in residuals.items():
+        rows = dofs if r.shape[1] == len(dofs) and name not in labels else labels.get(name, [])
+        out[name] = (
+            list(rows) if len(rows) == r.shape[1] else [f"row {j}" for j in range(r.shape[1])]
+        )
+    return out
+
+
+def row_label(est: Estimate, factor: str, j: int) -> str:
+    """`"<factor> <row>"`: "mocap_torso torso_site position z", "physics root_z"."""
+    labels = est.residual_labels.get(factor, [])
+    return f"{factor} {labels[j] if j < len(labels) else f'row {j}'}"
 
 
 def residuals_by_type(
@@ -533,10 +598,9 @@ def consistency_warnings(est: Estimate, problem: Problem | None = None) -> list[
         k = int(np.nanargmax(magnitude[:, j]))
         t = (est.t_ns[k] - est.t_ns[0]) / 1e9
         what = "the motion (physics factors)" if name == "physics" else f"the {name} measurements"
-        row, cause = f"row {j}", "wrong model, unmodeled contact or force, or a faulty sensor or "
-        cause += "noise setting?"
+        row = row_label(est, name, j).removeprefix(f"{name} ")
+        cause = "wrong model, unmodeled contact or force, or a faulty sensor or noise setting?"
         if name == "physics" and problem is not None:
-            row = f"dof {j} ({dof_names(problem.model)[j]})"
             cause = likely_cause(problem, j)
         out.append(
             f"the model does not explain {what}: median residual "
@@ -577,9 +641,8 @@ def likely_cause(problem: Problem, dof: int) -> str:
     return "the model's friction, damping or masses on this joint, or an unmodeled force"
 
 
-def largest_residuals(est: Estimate, problem: Problem, n: int = 5) -> list[dict]:
-    """The n largest whitened residuals: factor type, which row, when, value."""
-    model = problem.model
+def largest_residuals(est: Estimate, n: int = 5) -> list[dict]:
+    """The n largest whitened residuals: factor type, which row (labelled), when, value."""
     entries: list[dict[str, Any]] = []
     for name, r in est.residuals.items():
         mag = np.abs(np.nan_to_num(r, nan=0.0))
@@ -587,14 +650,10 @@ def largest_residuals(est: Estimate, problem: Problem, n: int = 5) -> list[dict]
             k, j = np.unravel_index(np.argmax(mag), mag.shape)
             if mag[k, j] == 0:
                 break
-            what = f"dof {j}"
-            if name == "physics":
-                joint = joint_name(model, int(model.dof_jntid[j]))
-                what = f"dof {j} (joint {joint!r})"
             entries.append(
                 {
                     "factor": name,
-                    "row": what if name == "physics" else f"row {j}",
+                    "row": row_label(est, name, int(j)).removeprefix(f"{name} "),
                     "time_s": float((est.t_ns[k] - est.t_ns[0]) / 1e9),
                     "whitened": float(r[k, j]),
                 }

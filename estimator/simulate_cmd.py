@@ -14,10 +14,12 @@ mismatch, no_commands). The same seed gives the same file.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from dataclasses import replace
 from pathlib import Path
 
+from estimator.outputs import OutputFile
 from estimator.simulate import SCENARIOS, SimulationError, scenario_config, simulate
 from estimator.simulate.conditions import CONDITIONS, with_condition
 from estimator.simulate.model_scenario import EXCITATION_RAD, model_scenario
@@ -106,19 +108,23 @@ def run(args: argparse.Namespace) -> int:
         scenario = replace(scenario, ground_truth_decimation=args.ground_truth_every)
     if args.duration is not None and not args.duration > 0:
         raise SimulationError(f"--duration {args.duration}: expected a positive number of seconds")
-    _check_writable(args.out, "--out")
-    if args.config_out is not None:
-        _check_writable(args.config_out, "--config-out")
-    result = simulate(
-        scenario,
-        args.out,
-        seed=args.seed,
-        duration_s=args.duration,
-        mismatch=not args.no_mismatch,
-        progress=not args.quiet and sys.stderr.isatty(),
-    )
-    if args.config_out is not None:
-        args.config_out.write_text(scenario_config(scenario, args.config_out), encoding="utf-8")
+    # checked before simulating; each file put in place only once complete
+    with contextlib.ExitStack() as outputs:
+        log = outputs.enter_context(OutputFile(args.out, create_folder=False))
+        config_out = None
+        if args.config_out is not None:
+            new_config = OutputFile(args.config_out, "--config-out", create_folder=False)
+            config_out = outputs.enter_context(new_config)
+        result = simulate(
+            scenario,
+            log,
+            seed=args.seed,
+            duration_s=args.duration,
+            mismatch=not args.no_mismatch,
+            progress=not args.quiet and sys.stderr.isatty(),
+        )
+        if config_out is not None:  # model paths relative to where it goes, not to `config_out`
+            config_out.write_text(scenario_config(scenario, args.config_out), encoding="utf-8")
     if not args.quiet:
         size = args.out.stat().st_size / 1e6
         print(
@@ -151,19 +157,3 @@ def _scenario(args: argparse.Namespace) -> Scenario:
         pushes=args.pushes,
         excitation_rad=EXCITATION_RAD if args.excitation is None else args.excitation,
     )
-
-
-def _check_writable(path: Path, option: str) -> None:
-    """Fail early (before simulating) when `path` cannot be created."""
-    if path.is_dir():
-        raise SimulationError(f"{option} {path}: is a directory, expected a file path")
-    if not path.parent.is_dir():
-        raise SimulationError(f"{option} {path}: folder {path.parent} does not exist")
-    existed = path.exists()
-    try:
-        with path.open("ab"):
-            pass
-    except OSError as err:
-        raise SimulationError(f"{option} {path}: cannot write: {err.strerror or err}") from err
-    if not existed:
-        path.unlink()

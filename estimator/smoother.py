@@ -68,6 +68,43 @@ class WindowResult:
     # the estimate to the model's parameters (`consider_variance`)
     solved_system: BandedSystem | None = None
     physics: Block | None = None
+    next_prior: MarginalPrior | None = None  # for the window that starts at `marginalize`
+
+
+@dataclass(frozen=True)
+class MarginalPrior:
+    """What the knots before a window said about its first n keys, the others marginalized
+    (a Schur complement of their normal equations): ½ (δ − δ̂)ᵀ Λ (δ − δ̂), δ = (q_k ⊖ q̄_k,
+    b_k − b̄_k) stacked over keys 0 … n − 1 (n = span − 1: every key the next rows share).
+
+    qpos (n, nq), bias (n, nb): its linearization point q̄, b̄ (the previous window's
+    solution); info Λ (n nz, n nz); mean δ̂ (n nz): where the marginal puts those keys.
+    gain: (m nz, n nz) −H_ee⁻¹ H_er, how the m marginalized keys before follow when the next
+    window moves these keys (the smoother's backward pass, linearized: `follow`).
+    """
+
+    qpos: np.ndarray
+    bias: np.ndarray
+    info: np.ndarray
+    mean: np.ndarray
+    gain: np.ndarray
+
+    @property
+    def keys(self) -> int:
+        return len(self.qpos)
+
+    def error(self, model: mujoco.MjModel, qpos: np.ndarray, bias: np.ndarray) -> np.ndarray:
+        """δ − δ̂ (n nz) at the window's first n keys of (qpos, bias)."""
+        delta = []
+        for k in range(self.keys):
+            dq = np.zeros(model.nv)
+            mujoco.mj_differentiatePos(model, dq, 1.0, self.qpos[k], qpos[k])  # q ⊖ q̄
+            delta.append(np.r_[dq, bias[k] - self.bias[k]])
+        return np.concatenate(delta) - self.mean
+
+    def cost(self, model: mujoco.MjModel, qpos: np.ndarray, bias: np.ndarray) -> float:
+        e = self.error(model, qpos, bias)
+        return 0.5 * float(e @ self.info @ e)
 
 
 @dataclass
@@ -130,8 +167,9 @@ KERNELS = {"huber": huber, "cauchy": cauchy}
 class Linearizer:
     """Residuals and their Jacobians over all knots of a problem, vectorized across knots."""
 
-    def __init__(self, problem: Problem) -> None:
+    def __init__(self, problem: Problem, prior: MarginalPrior | None = None) -> None:
         self.problem = problem
+        self.prior = prior  # on the first keys, from the knots before the window
         self.idle: queue.SimpleQueue[KnotModel] = queue.SimpleQueue()
         for _ in range(THREADS):
             self.idle.put(KnotModel(problem, problem.settings.path))
@@ -381,6 +419,8 @@ class Linearizer:
         for b in self.blocks(self.terms(qpos, False), bias):
             total[b.name] = total.get(b.name, 0.0) + float(b.cost.sum())
         total.update(self.bias_cost(bias))
+        if self.prior is not None:
+            total["marginal prior"] = self.prior.cost(self.problem.model, qpos, bias)
         return sum(total.values()), total
 
     def linearize(self, qpos: np.ndarray, bias: np.ndarray) -> list[Block]:
@@ -439,12 +479,14 @@ class Linearizer:
         return out
 
     def bias_cost(self, bias: np.ndarray) -> dict[str, float]:
-        """{"bias": cost of the bias prior and random walk} ({} without biased sensors)."""
+        """{"bias": cost of the bias prior (unless a marginal prior holds b_0) and random walk}
+        ({} without biased sensors)."""
         p = self.problem
         if not p.nb:
             return {}
         walk = (bias[1:] - bias[:-1]) / (p.bias_walk * np.sqrt(p.h))
-        return {"bias": 0.5 * float(np.sum((bias[0] / p.bias_prior) ** 2) + np.sum(walk**2))}
+        first = np.sum((bias[0] / p.bias_prior) ** 2) if self.prior is None else 0.0
+        return {"bias": 0.5 * float(first + np.sum(walk**2))}
 
     def close(self) -> None:
         self.pool.shutdown()
@@ -464,9 +506,31 @@ class BandedSystem:
     g: np.ndarray
 
     @classmethod
-    def of(cls, blocks: list[Block], lin: Linearizer, bias: np.ndarray) -> BandedSystem:
-        """The system of `lin.linearize`'s blocks (and the bias prior and walk)."""
+    def of(
+        cls,
+        blocks: list[Block],
+        lin: Linearizer,
+        bias: np.ndarray,
+        qpos: np.ndarray | None = None,
+        until: int | None = None,
+    ) -> BandedSystem:
+        """The system of `lin.linearize`'s blocks (and the bias prior and walk, and the
+        marginal prior at qpos). until: only the factors on keys ≤ until — the rows of knots
+        k ≤ until − span + 2 and the walk steps to keys ≤ until — what a window's past says
+        before its keys ≤ until are marginalized (`marginal_prior`)."""
         p = lin.problem
+        if until is not None:
+            last_row = until - lin.span + 2  # knot of the last row kept: it reaches key `until`
+            keep = (np.arange(p.T - 2) + 1 <= last_row)[:, None]
+            blocks = [
+                replace(
+                    b,
+                    r=b.r * keep,
+                    J=None if b.J is None else b.J * keep.reshape(-1, *[1] * (b.J.ndim - 1)),
+                    J_bias=None if b.J_bias is None else b.J_bias * keep[:, :, None],
+                )
+                for b in blocks
+            ]
         T, nz, nv, span = p.T, p.nz, p.model.nv, lin.span
         K = T - 2
         # Knot row i (knot k = i + 1) reaches keys i + a, a = 0 … span − 1. Each factor's
@@ -551,15 +615,28 @@ class BandedSystem:
                 mine += more
         if p.nb:  # bias prior on b_0, random walk (b_{k+1} − b_k)/(σ_walk √h)
             b_ = slice(nv, nz)
-            diag[0, b_, b_] += np.diag(p.bias_prior**-2.0)
-            g[0, b_] += bias[0] / p.bias_prior**2
+            if lin.prior is None:  # (a marginal prior holds b_0 already)
+                diag[0, b_, b_] += np.diag(p.bias_prior**-2.0)
+                g[0, b_] += bias[0] / p.bias_prior**2
             W = np.diag((p.bias_walk * np.sqrt(p.h)) ** -2.0)
-            step = (bias[1:] - bias[:-1]) @ W
-            diag[:-1, b_, b_] += W
-            diag[1:, b_, b_] += W
-            lower[0][:, b_, b_] -= W
-            g[:-1, b_] -= step
-            g[1:, b_] += step
+            # the steps k → k + 1 (to keys ≤ the last kept row's knot, with `until`)
+            n = T - 1 if until is None else min(T - 1, until - lin.span + 2)
+            step = (bias[1 : n + 1] - bias[:n]) @ W
+            diag[:n, b_, b_] += W
+            diag[1 : n + 1, b_, b_] += W
+            lower[0][:n, b_, b_] -= W
+            g[:n, b_] -= step
+            g[1 : n + 1, b_] += step
+        if lin.prior is not None:  # ½ eᵀΛe on the first keys: H += Λ, g += Λe
+            assert qpos is not None, "a marginal prior needs the window's qpos"
+            prior = lin.prior
+            Lam = prior.info.reshape(prior.keys, nz, prior.keys, nz)
+            Le = (prior.info @ prior.error(p.model, qpos, bias)).reshape(prior.keys, nz)
+            for i in range(prior.keys):
+                g[i] += Le[i]
+                diag[i] += Lam[i, :, i]
+                for j in range(i):
+                    lower[i - j - 1][j] += Lam[i, :, j]
         return cls(diag, lower, g)
 
     def marginal_std(self, nv: int, warnings: list[str], keys: range | None = None) -> np.ndarray:
@@ -675,11 +752,20 @@ def honest(blocks: list[Block]) -> list[Block]:
 
 
 def solve_window(
-    problem: Problem, qpos: np.ndarray, bias: np.ndarray, covariance: bool | range = True
+    problem: Problem,
+    qpos: np.ndarray,
+    bias: np.ndarray,
+    covariance: bool | range = True,
+    prior: MarginalPrior | None = None,
+    marginalize: int | None = None,
 ) -> WindowResult:
     """Levenberg–Marquardt on one window from (qpos (T, nq), bias (T, nb)); the marginal
-    covariances at the knots `covariance` (True: all; False: none)."""
-    lin = Linearizer(problem)
+    covariances at the knots `covariance` (True: all; False: none).
+
+    prior: what the knots before the window say about its first keys (`MarginalPrior`).
+    marginalize: the key where the next window starts: its prior (`WindowResult.next_prior`)
+    is this window's past up to there, marginalized at the last linearization."""
+    lin = Linearizer(problem, prior)
     try:
         p = problem
         cost, by_type = lin.cost(qpos, bias)
@@ -694,7 +780,8 @@ def solve_window(
         blocks: list[Block] = []
         for it in range(1, p.settings.max_iterations + 1):  # noqa: B007
             blocks = lin.linearize(qpos, bias)
-            system = BandedSystem.of(blocks, lin, bias)
+            at = (qpos, bias)
+            system = BandedSystem.of(blocks, lin, bias, qpos)
             s, ab = system.scaled_band()
             while lam <= 1e10:
                 try:
@@ -736,15 +823,85 @@ def solve_window(
             [],
             lin.passes[True],
             lin.passes[False],
-            BandedSystem.of(honest(blocks), lin, bias) if blocks else system,
+            BandedSystem.of(honest(blocks), lin, bias, qpos) if blocks else system,
             system,
             blocks[0] if blocks else None,
+            marginal_prior(lin, blocks, *at, marginalize) if marginalize and blocks else None,
         )
     finally:
         lin.close()
     if not covariance:
         return result
     return with_covariance(result, covariance if isinstance(covariance, range) else None, problem)
+
+
+def marginal_prior(
+    lin: Linearizer, blocks: list[Block], qpos: np.ndarray, bias: np.ndarray, start: int
+) -> MarginalPrior:
+    """The prior this window's past puts on keys start … start + span − 2, the first keys of
+    the window that starts at `start` (they share rows with what follows): the factors on
+    keys < start + span − 1 alone (`BandedSystem.of(until=…)`), linearized at (qpos, bias),
+    the keys e < start eliminated, r the kept ones:
+
+        Λ = H_rr − H_re H_ee⁻¹ H_er,   g̃ = g_r − H_re H_ee⁻¹ g_e,   δ̂ = −Λ⁺ g̃
+
+    (the sliding-window smoother's Schur complement; H_ee is banded: one banded Cholesky)."""
+    n = lin.span - 1
+    part = BandedSystem.of(blocks, lin, bias, qpos, until=start + n - 1)
+    nz = part.diag.shape[1]
+
+    def H(i: int, j: int) -> np.ndarray:  # key block H_ij of the past's system (0 beyond)
+        if i == j:
+            return part.diag[i]
+        if i > j:
+            return part.lower[i - j - 1][j] if i - j <= n else np.zeros((nz, nz))
+        return H(j, i).T
+
+    kept = range(start, start + n)
+    touching = range(max(0, start - n), start)  # eliminated keys coupled to the kept ones
+    H_rr = np.block([[H(i, j) for j in kept] for i in kept])
+    H_er = np.zeros((start * nz, n * nz))
+    for k in touching:
+        H_er[k * nz : (k + 1) * nz] = np.hstack([H(k, j) for j in kept])
+    past = BandedSystem(
+        part.diag[:start],
+        [lo[: max(start - d, 0)] for d, lo in enumerate(part.lower, 1)],
+        part.g[:start],
+    )
+    s, ab = past.scaled_band()
+    ab[0] += 1e-12  # (bias dims no factor of the past reaches yet)
+    L = scipy.linalg.cholesky_banded(ab, lower=True, check_finite=False)
+    rhs = np.hstack([H_er, part.g[:start].reshape(-1, 1)])
+    X = s[:, None] * scipy.linalg.cho_solve_banded((L, True), s[:, None] * rhs)
+    info = H_rr - H_er.T @ X[:, :-1]
+    g = part.g[start : start + n].reshape(-1) - H_er.T @ X[:, -1]
+    info = 0.5 * (info + info.T)
+    d = 1.0 / np.sqrt(np.maximum(np.diag(info), 1e-300))  # Jacobi scaling: stiff contacts
+    mean = -d * (scipy.linalg.pinvh(d[:, None] * info * d[None, :]) @ (d * g))
+    return MarginalPrior(
+        qpos[start : start + n].copy(), bias[start : start + n].copy(), info, mean, -X[:, :-1]
+    )
+
+
+def follow(
+    model: mujoco.MjModel,
+    prior: MarginalPrior,
+    moved: tuple[np.ndarray, np.ndarray],
+    now: tuple[np.ndarray, np.ndarray],
+    past: tuple[np.ndarray, np.ndarray],
+) -> tuple[np.ndarray, np.ndarray]:
+    """The marginalized keys `past` (qpos (m, nq), bias (m, nb)) updated for the next
+    window having moved the shared keys from `moved` to `now` ((n, nq), (n, nb) each):
+    δ_e = −H_ee⁻¹ H_er δ_r, the minimum of the past's factors given the shared keys
+    (a Rauch–Tung–Striebel backward step on the linearized system), so that the windows
+    join without a seam."""
+    delta = []
+    for k in range(prior.keys):
+        dq = np.zeros(model.nv)
+        mujoco.mj_differentiatePos(model, dq, 1.0, moved[0][k], now[0][k])
+        delta.append(np.r_[dq, now[1][k] - moved[1][k]])
+    step = (prior.gain @ np.concatenate(delta)).reshape(len(past[0]), -1)
+    return retract(model, past[0], step[:, : model.nv]), past[1] + step[:, model.nv :]
 
 
 def with_covariance(

@@ -4,6 +4,7 @@
     write_recording(estimate, model, log, path=path, spawn=True)   # + a native viewer (display)
     write_recording(estimate, model, log, path=path, serve=True)   # + prints the web viewer URL
     serve_until_interrupted()                                       # keep serving until Ctrl-C
+    show_recording(estimate, model, path, spawn=True)               # a written file, to a viewer
 
 What the recording holds (entity paths; `time` is a duration timeline, seconds since the start
 of the log, and the recording's start time is that instant in absolute time):
@@ -92,6 +93,7 @@ def write_recording(
     spawn: bool = False,
     serve: bool = False,
     application_id: str = "physfuse",
+    recording_id: str | None = None,
     host: str = "127.0.0.1",
     grpc_port: int = DEFAULT_GRPC_PORT,
     web_port: int = DEFAULT_WEB_PORT,
@@ -102,7 +104,8 @@ def write_recording(
     estimate: on the grid of `model` (estimate.qpos has model.nq columns).
     log: the log the estimate came from; its pose, tf, rigid_bodies and markers streams are
         drawn beside the model (the other kinds show through their residuals and biases).
-    path: the `.rrd` file to write (returned); None writes no file.
+    path: the `.rrd` file to write (returned); None writes no file. It is written first, so
+        that a viewer that cannot open (ViewerError) still leaves it complete.
     spawn: also start a native Rerun viewer (the `rerun` executable on PATH, and a display)
         listening on port 9876 (grpc_port + 1 when also serving) and send it the recording;
         returns once the viewer has it.
@@ -111,6 +114,8 @@ def write_recording(
         live until `stop_serving()` (or process exit), so keep the process alive, e.g. with
         `serve_until_interrupted()`. The web viewer's HTTP server cannot be stopped before the
         process exits (Rerun 0.41 has no call for it).
+    recording_id: the recording's id (default: a new UUID), e.g. a run id shared with other
+        outputs of the same run.
     Each call makes its own `rr.RecordingStream` (never the global one).
     """
     if estimate.qpos.shape != (estimate.T, model.nq):
@@ -120,12 +125,7 @@ def write_recording(
         )
     if path is None and not spawn and not serve:
         raise ValueError("write_recording: give a path, spawn=True or serve=True")
-    if spawn:
-        _check_display()
-    if serve:
-        _check_port_free(host, grpc_port)
-        _check_port_free("0.0.0.0", web_port)  # the web viewer's HTTP server binds everywhere
-    recording_id = str(uuid.uuid4())
+    recording_id = recording_id or str(uuid.uuid4())
     blueprint = build_blueprint(estimate, model)
     out = None if path is None else Path(path)
     if out is not None:
@@ -136,35 +136,91 @@ def write_recording(
         rec.flush()
         rec.disconnect()  # closes the file and writes its footer
     if spawn or serve:
-        live = rr.RecordingStream(application_id, recording_id=recording_id)
-        sinks: list[rr.GrpcSink | rr.GrpcServerSink] = []
-        if spawn:
-            viewer_port = grpc_port + 1 if serve else DEFAULT_GRPC_PORT
-            live.spawn(port=viewer_port, connect=False)
-            sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{viewer_port}/proxy"))
-        server = rr.GrpcServerSink(host, grpc_port) if serve else None
-        if server is not None:
-            sinks.append(server)
-        live.set_sinks(*sinks, default_blueprint=blueprint)
-        if out is not None:  # the same chunks as the file, without logging them again
-            live.send_chunks(rr.chunk.RrdReader(out).stream())
-        else:
-            _log_all(live, estimate, model, log)
-        live.flush(timeout_sec=LIVE_FLUSH_TIMEOUT_S)
-        if server is not None:
-            try:
-                rr.serve_web_viewer(
-                    web_port=web_port, open_browser=open_browser, connect_to=server.uri
-                )
-            except RuntimeError as err:
-                live.disconnect()
-                raise ViewerError(f"cannot serve the web viewer on port {web_port}: {err}") from err
-            print(f"Rerun web viewer: {web_viewer_url(server.uri, host, web_port)}")
-            print(f"Native viewer:    rerun {server.uri}")
-            _SERVING.append(live)
-        else:
-            live.disconnect()
+        _check_viewer(spawn, serve, host, grpc_port, web_port)
+        _show(
+            estimate, model, log, out, blueprint, application_id, recording_id,
+            spawn=spawn, serve=serve, host=host, grpc_port=grpc_port, web_port=web_port,
+            open_browser=open_browser,
+        )  # fmt: skip
     return out
+
+
+def show_recording(
+    estimate: Estimate,
+    model: mujoco.MjModel,
+    path: str | Path,
+    *,
+    spawn: bool = False,
+    serve: bool = False,
+    application_id: str = "physfuse",
+    host: str = "127.0.0.1",
+    grpc_port: int = DEFAULT_GRPC_PORT,
+    web_port: int = DEFAULT_WEB_PORT,
+    open_browser: bool = False,
+) -> None:
+    """Send a recording `write_recording` wrote to `path` to a viewer (spawn / serve as in
+    `write_recording`), its chunks read back from the file; ViewerError when none can open."""
+    _check_viewer(spawn, serve, host, grpc_port, web_port)
+    (store,) = rr.chunk.RrdReader(Path(path)).recordings()
+    _show(
+        estimate, model, None, Path(path), build_blueprint(estimate, model), application_id,
+        store.recording_id, spawn=spawn, serve=serve, host=host, grpc_port=grpc_port,
+        web_port=web_port, open_browser=open_browser,
+    )  # fmt: skip
+
+
+def _check_viewer(spawn: bool, serve: bool, host: str, grpc_port: int, web_port: int) -> None:
+    if spawn:
+        _check_display()
+    if serve:
+        _check_port_free(host, grpc_port)
+        _check_port_free("0.0.0.0", web_port)  # the web viewer's HTTP server binds everywhere
+
+
+def _show(
+    estimate: Estimate,
+    model: mujoco.MjModel,
+    log: Log | None,
+    out: Path | None,
+    blueprint: rrb.Blueprint,
+    application_id: str,
+    recording_id: str,
+    *,
+    spawn: bool,
+    serve: bool,
+    host: str,
+    grpc_port: int,
+    web_port: int,
+    open_browser: bool,
+) -> None:
+    """The live part of `write_recording`: the file's chunks (`out`), else the estimate
+    logged anew, to a spawned viewer and / or a served one."""
+    live = rr.RecordingStream(application_id, recording_id=recording_id)
+    sinks: list[rr.GrpcSink | rr.GrpcServerSink] = []
+    if spawn:
+        viewer_port = grpc_port + 1 if serve else DEFAULT_GRPC_PORT
+        live.spawn(port=viewer_port, connect=False)
+        sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{viewer_port}/proxy"))
+    server = rr.GrpcServerSink(host, grpc_port) if serve else None
+    if server is not None:
+        sinks.append(server)
+    live.set_sinks(*sinks, default_blueprint=blueprint)
+    if out is not None:  # the same chunks as the file, without logging them again
+        live.send_chunks(rr.chunk.RrdReader(out).stream())
+    else:
+        _log_all(live, estimate, model, log)
+    live.flush(timeout_sec=LIVE_FLUSH_TIMEOUT_S)
+    if server is not None:
+        try:
+            rr.serve_web_viewer(web_port=web_port, open_browser=open_browser, connect_to=server.uri)
+        except RuntimeError as err:
+            live.disconnect()
+            raise ViewerError(f"cannot serve the web viewer on port {web_port}: {err}") from err
+        print(f"Rerun web viewer: {web_viewer_url(server.uri, host, web_port)}")
+        print(f"Native viewer:    rerun {server.uri}")
+        _SERVING.append(live)
+    else:
+        live.disconnect()
 
 
 def _check_display() -> None:
@@ -425,14 +481,15 @@ def _log_residuals(
 ) -> None:
     for factor, r in estimate.residuals.items():
         r = np.asarray(r).reshape(estimate.T, -1)
+        labels = estimate.residual_labels.get(factor)
+        if not labels or len(labels) != r.shape[1]:
+            labels = list(dofs) if r.shape[1] == len(dofs) else _indexed("r", r.shape[1])
         if factor == "physics":
-            names = list(dofs) if r.shape[1] == len(dofs) else _indexed("r", r.shape[1])
-            _log_series_group(rec, "plots/physics", names, r, knots)
+            _log_series_group(rec, "plots/physics", labels, r, knots)
         else:
-            names = [f"{factor}[{i}]" for i in range(r.shape[1])]
             entity = f"plots/sensors/{_part(factor)}"
-            for i, name in enumerate(names):
-                _log_series(rec, f"{entity}/{i}", name, r[:, i], knots)
+            for i, label in enumerate(labels):
+                _log_series(rec, f"{entity}/{i}", f"{factor} {label}", r[:, i], knots)
 
 
 def _log_imu_bias(rec: rr.RecordingStream, estimate: Estimate, knots: np.ndarray) -> None:

@@ -13,12 +13,15 @@ from __future__ import annotations
 
 import io
 import shutil
+import struct
+import zlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
+from mcap.reader import make_reader
 from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer as Ros2Writer
 from rosbags.interfaces import Nodetype
@@ -170,8 +173,12 @@ def write_mcap(
     *,
     chunk_size: int = 1024 * 1024,
     compression: str = "zstd",
+    enable_crcs: bool = True,
 ) -> None:
-    """Write messages (in the given order) as a ROS 2 MCAP file with mcap_ros2's writer."""
+    """Write messages (in the given order) as a ROS 2 MCAP file with mcap_ros2's writer.
+
+    enable_crcs: False writes no chunk and summary CRCs (as some writers do).
+    """
     own = isinstance(target, str | Path)
     out: Any = open(target, "wb") if own else target  # noqa: SIM115
     try:
@@ -179,6 +186,7 @@ def write_mcap(
             out,
             chunk_size=chunk_size,
             compression=CompressionType.ZSTD if compression == "zstd" else CompressionType.NONE,
+            enable_crcs=enable_crcs,
         )
         schemas = {}
         for m in messages:
@@ -297,6 +305,7 @@ def _field(node: tuple, value: Any) -> Any:
 # -- the test robot and a sample recording ------------------------------------------------------
 ROBOT_XML = """\
 <mujoco model="walker">
+  <option cone="elliptic"/>
   <worldbody>
     <body name="torso" pos="0 0 1">
       <freejoint name="root"/>
@@ -561,8 +570,26 @@ BAD_SKIPPED = {
 
 
 def corrupt_string_length(data: bytes, marker: str) -> bytes:
-    """Overwrite the CDR length in front of the string `marker` (an uncompressed log)."""
+    """Overwrite the CDR length in front of the string `marker` (an uncompressed log).
+
+    The chunk's CRC is computed anew, as if the writer had serialized a bad message: the
+    damage is in the message, for the decoder to find, not in the file.
+    """
     raw = marker.encode() + b"\x00"
     at = data.index(raw)
     assert data.count(raw) == 1, "marker must occur once"
-    return data[: at - 4] + b"\xff\xff\xff\x7f" + data[at:]
+    out = bytearray(data[: at - 4] + b"\xff\xff\xff\x7f" + data[at:])
+    summary = make_reader(io.BytesIO(data)).get_summary()
+    assert summary is not None
+    (chunk,) = [
+        c
+        for c in summary.chunk_indexes
+        if c.chunk_start_offset < at < c.chunk_start_offset + c.chunk_length
+    ]
+    assert chunk.compression == ""
+    # chunk record: opcode, length, start, end, uncompressed size, CRC, "" (4), data length, data
+    crc_at, data_at = chunk.chunk_start_offset + 33, chunk.chunk_start_offset + 49
+    out[crc_at : crc_at + 4] = struct.pack(
+        "<I", zlib.crc32(out[data_at : data_at + chunk.compressed_size])
+    )
+    return bytes(out)

@@ -130,8 +130,7 @@ def test_physics_factor_jacobian_with_state_dependent_actuation(tmp_path):
     affine and clamped actuators) against central differences on the manifold."""
     model_path = quadruped_with_actuators(tmp_path)
     config = load_config(
-        config_for_model(ROOT / "configs" / "quadruped_trot.toml", model_path, tmp_path),
-        extra_sections=("estimator",),
+        config_for_model(ROOT / "configs" / "quadruped_trot.toml", model_path, tmp_path)
     )
     log = read_log(ROOT / "recordings" / "quadruped_trot.mcap", config)
     t_ns = knot_grid(log.measurements, 0.005)[200:212]

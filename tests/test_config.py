@@ -88,11 +88,22 @@ def test_the_readme_example_is_a_valid_config(tmp_path):
 
 
 def test_other_sections_pass_through_when_declared(tmp_path):
-    text = SAMPLE_CONFIG + "\n[simulate]\nduration_s = 2.0\n"
-    config = _load(tmp_path, text, extra_sections=("simulate",))
-    assert config.sections == {"simulate": {"duration_s": 2.0}}
-    with pytest.raises(ConfigError, match=r"simulate: unknown key; allowed keys: model, "):
+    text = SAMPLE_CONFIG + "\n[my_tool]\nduration_s = 2.0\n"
+    config = _load(tmp_path, text, extra_sections=("my_tool",))
+    assert config.sections == {"my_tool": {"duration_s": 2.0}}
+    with pytest.raises(ConfigError, match=r"my_tool: unknown key; allowed keys: model, "):
         _load(tmp_path, text)
+
+
+def test_the_estimator_and_simulate_tables_need_no_extra_sections(tmp_path):
+    """physfuse's own tables are read (and validated) whether or not a caller names them."""
+    text = SAMPLE_CONFIG + "\n[estimator]\nwindow_s = 2\n\n[simulate]\n"
+    for kwargs in ({}, {"extra_sections": ("estimator", "simulate")}):
+        config = _load(tmp_path, text, **kwargs)
+        assert config.sections == {"estimator": {"window_s": 2}, "simulate": {}}
+    bad = SAMPLE_CONFIG + "\n[estimator]\nwindow_s = -2\n"
+    with pytest.raises(ConfigError, match=r"config.toml: estimator.window_s = -2; expected a"):
+        _load(tmp_path, bad, extra_sections=("estimator",))
 
 
 STREAM = '[streams.s]\ntype = "pose"\ntopic = "/p"\n'
@@ -115,7 +126,7 @@ STREAM = '[streams.s]\ntype = "pose"\ntopic = "/p"\n'
         (
             HEAD + STREAM + 'bdy = "torso"\n',
             "streams.s.bdy: unknown key; allowed keys: type, topic, stamp, time_offset_ns, "
-            "required, noise, body, site",
+            "required, noise, max_abs, body, site",
         ),
         (
             HEAD + '[streams.s]\ntype = "camera"\ntopic = "/c"\n',

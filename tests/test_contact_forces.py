@@ -93,7 +93,7 @@ def test_balancing_recovers_the_contact_force_that_explains_a_residual():
 def test_balanced_forces_are_closer_to_the_truth_on_the_quadruped_recording():
     """The estimate of recordings/quadruped_trot: the balanced net contact force per foot is
     nearer the true one than the model's (at touch-down and lift-off the model's jump)."""
-    config = load_config(ROOT / "configs" / "quadruped_trot.toml", extra_sections=("estimator",))
+    config = load_config(ROOT / "configs" / "quadruped_trot.toml")
     log_path = ROOT / "recordings" / "quadruped_trot.mcap"
     log = read_log(log_path, config)
     est, _ = estimate(config, log.measurements, Settings())
@@ -127,4 +127,4 @@ def test_contact_forces_setting_is_checked(tmp_path):
     text = (ROOT / "configs" / "quadruped_trot.toml").read_text()
     config.write_text(text + '\n[estimator]\ncontact_forces = "balance"\n')
     with pytest.raises(ConfigError, match=r"estimator.contact_forces = 'balance'; expected one of"):
-        Settings.from_config(load_config(config, extra_sections=("estimator",)))
+        Settings.from_config(load_config(config))

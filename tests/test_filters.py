@@ -79,7 +79,7 @@ def test_chart_coordinates_are_mujoco_tangent_space():
 
 @cache
 def _slice(name: str, seconds: float) -> tuple[Config, dict[str, Measurement]]:
-    config = load_config(ROOT / "configs" / f"{name}.toml", extra_sections=("estimator",))
+    config = load_config(ROOT / "configs" / f"{name}.toml")
     measurements = read_log(ROOT / "recordings" / f"{name}.mcap", config).measurements
     t0 = min(int(m.t_ns[0]) for m in measurements.values() if len(m))
     end = t0 + int(seconds * 1e9)

@@ -8,6 +8,7 @@ import pytest
 import ros2_logs as rl
 
 from estimator.cli import main
+from estimator.logs import BadSampleCounts
 
 DURATION = 0.5
 COUNTS = rl.sample_counts(DURATION)
@@ -54,18 +55,7 @@ def test_sample_recording_is_reported_topic_by_topic(files, capsys, tmp_path):
     assert {t["topic"]: t["count"] for t in data["topics"]} == COUNTS
     assert data["streams"]["imu"] == {
         "samples": COUNTS["/imu"],
-        "bad": dict.fromkeys(
-            [
-                "nan",
-                "duplicate_time",
-                "backwards_time",
-                "wrong_length",
-                "unknown_name",
-                "unknown_type",
-                "undecodable",
-            ],
-            0,
-        ),
+        "bad": dict.fromkeys(BadSampleCounts.reasons(), 0),
     }
     assert all(c["found"] for c in data["checklist"]) and not data["truncated"]
     imu = next(t for t in data["topics"] if t["topic"] == "/imu")

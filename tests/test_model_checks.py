@@ -174,7 +174,7 @@ def test_a_physics_residual_over_the_whole_log_names_the_likely_setting(tmp_path
     assert main(["estimate", str(LOG), "--config", str(config), "--out", str(out), "--quiet"]) == 0
     err = capsys.readouterr().err
     (line,) = [w for w in err.splitlines() if "does not explain the motion" in w]
-    assert "_knee)" in line and "the commands' force through the actuators" in line
+    assert "_knee (largest" in line and "the commands' force through the actuators" in line
 
 
 def test_a_softness_scale_that_is_not_a_factor_is_a_one_line_error(tmp_path, capsys):

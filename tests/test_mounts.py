@@ -50,7 +50,7 @@ def _costs(config_path: Path) -> dict[str, float]:
     log = read_log(LOG, original)
     t_ns = knot_grid(log.measurements, 0.005)[100:160]
     qpos = initial_trajectory(original.load_model(), log.measurements, t_ns)
-    config = load_config(config_path, extra_sections=("estimator",))
+    config = load_config(config_path)
     log = read_log(LOG, config)
     problem = build_problem(config, log.measurements, Settings(), t_ns)
     lin = Linearizer(problem)

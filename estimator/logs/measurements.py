@@ -34,6 +34,9 @@ class BadSampleCounts:
     """Messages skipped on one stream (or topic), by reason."""
 
     nan: int = 0  # a used field is NaN or ±Inf
+    out_of_bounds: int = 0  # a value beyond the physical bound of its component (`BOUNDS`)
+    bad_time: int = 0  # a stamp or log time outside any plausible clock (|t| ≥ 2^62 ns)
+    time_jump: int = 0  # one stamp far from both neighbours (a corrupt stamp, not a new origin)
     duplicate_time: int = 0  # same time as the previous kept sample
     backwards_time: int = 0  # earlier than the previous kept sample
     wrong_length: int = 0  # arrays of inconsistent length (JointState, commands)

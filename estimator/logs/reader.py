@@ -1,17 +1,18 @@
-"""Read a ROS 2 MCAP file or rosbag2 folder into per-stream measurement arrays.
+"""Read a ROS 2 MCAP file, rosbag2 folder, FIFO or stdin into per-stream measurement arrays.
 
     log = read_log("run.mcap", load_config("configs/humanoid.toml"))
     imu = log.measurements["imu"]          # Measurement: t_ns (N,), values (N, 1, 10)
 
-A truncated or damaged file yields everything before the damage and a warning in
-`Log.warnings`; bad samples are skipped and counted per stream (`Measurement.bad`) and per
-topic (`Log.topics[...].bad`); a required stream whose topic is absent, or that has no usable
-sample, raises `MissingTopicError`.
+A damaged file yields every message that its CRCs vouch for: a damaged chunk is skipped, a cut
+file keeps everything before the cut, and each loss is a `LostData` in `Log.lost` (file, time
+range, message count) and a line in `Log.warnings` (see `source`). Bad samples are skipped
+and counted per stream (`Measurement.bad`) and per topic (`Log.topics[...].bad`); a required
+stream whose topic is absent, or that has no usable sample, raises `MissingTopicError`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from estimator.logs.measurements import (
     collect,
 )
 from estimator.logs.samples import SampleExtractor
-from estimator.logs.source import LogSource, open_log
+from estimator.logs.source import LogSource, LostData, open_log
 
 
 @dataclass(frozen=True)
@@ -38,6 +39,8 @@ class Log:
     names_seen: per config stream, which of its source names (JointState joints, rigid
         bodies, markers, TF child frames) occur in the log.
     warnings: one line per problem with the file itself (truncation, damage).
+    truncated: the log ends early (cut, or unreadable to its end, or a split file missing).
+    lost: what damage cost, one `LostData` per damaged region (each also has a warning).
     """
 
     source: str
@@ -46,6 +49,7 @@ class Log:
     names_seen: Mapping[str, frozenset[str]]
     warnings: tuple[str, ...]
     truncated: bool
+    lost: tuple[LostData, ...] = ()
 
 
 def read_log(
@@ -55,7 +59,7 @@ def read_log(
     decode_all: bool = False,
     require: bool = True,
 ) -> Log:
-    """Read a log file or rosbag2 folder.
+    """Read a log file, rosbag2 folder, FIFO, or standard input (`-`).
 
     config: the streams to extract; None reads topic statistics only.
     decode_all: decode every topic (header stamps and bad counts for all of them), not only
@@ -73,6 +77,7 @@ def extract(source: LogSource, extractor: SampleExtractor) -> Iterator[Sample]:
     """The accepted samples of `source`, in log order, as its messages are read."""
     for raw in source:
         yield from extractor.feed(raw)
+    yield from extractor.flush()  # the samples held back to judge their stamps
 
 
 def finish(
@@ -89,7 +94,15 @@ def finish(
     topics = extractor.topic_stats(source.topics if extractor.decode_all else None)
     if require and config is not None:
         accepted = {name: len(m) for name, m in measurements.items()}
-        check_required(source.name, config, topics, accepted, bad, available=source.topics)
+        check_required(
+            source.name,
+            config,
+            topics,
+            accepted,
+            bad,
+            available=source.topics,
+            damage=source.warnings,
+        )
     return Log(
         source=source.name,
         measurements=measurements,
@@ -97,6 +110,7 @@ def finish(
         names_seen=extractor.names_seen(),
         warnings=tuple(source.warnings),
         truncated=source.truncated,
+        lost=tuple(source.lost),
     )
 
 
@@ -140,8 +154,14 @@ def check_required(
     accepted: Mapping[str, int],
     bad: Mapping[str, BadSampleCounts],
     available: Iterable[str] = (),
+    damage: Sequence[str] = (),
 ) -> None:
-    """Raise `MissingTopicError` naming every required stream without usable samples."""
+    """Raise `MissingTopicError` naming every required stream without usable samples.
+
+    damage: the log's warnings; the first is quoted, since damage may be why.
+    """
     problems = missing_required(config, topics, accepted, bad, available)
     if problems:
+        if damage:
+            problems.append(f"the log is damaged ({len(damage)} warnings, first: {damage[0]})")
         raise MissingTopicError(f"{source}: " + "; ".join(problems))

@@ -12,6 +12,15 @@ config's element order, rotate sensor axes into the site frame, time it
   whose length is not the number of actuators);
 - `unknown_name`: none of the stream's names (joints, bodies, markers) is in the message;
 - `nan`: a used field is NaN or ±Inf;
+- `out_of_bounds`: a used value beyond its component's physical bound (`BOUNDS`, e.g.
+  10 km for a position, 1000 rad/s for a gyro; a stream's `max_abs` overrides them), or a
+  quaternion whose norm is not within [0.5, 2];
+- `bad_time`: a stamp or log time outside any plausible clock (|t| ≥ 2^62 ns, ~146 years);
+- `time_jump`: one stamp far from both neighbours — later than the next sample while the
+  previous and the next are in order, or, at the stream's start or end, cut off from the
+  rest by a gap of over `MAX_TIME_JUMP_NS` and 100 of the stream's intervals. One corrupt
+  stamp is an outlier of that sample, never a new origin for the stream; to judge it a
+  sample is released one sample late (two at the stream's start);
 - `duplicate_time` / `backwards_time`: not later than the stream's previous accepted sample.
 
 A skipped message is only counted; the stream continues. A TF stream silently ignores
@@ -21,6 +30,9 @@ message alone (no config) and feed `TopicStats`.
 
 from __future__ import annotations
 
+import contextlib
+import io
+from collections import deque
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -31,10 +43,23 @@ from mcap_ros2.decoder import DecoderFactory
 from estimator.config import Config, StreamConfig
 from estimator.logs import ros2_types
 from estimator.logs.decode import DECODERS, TRAJECTORY, BadSampleError, Record, non_finite, stamp_ns
-from estimator.logs.measurements import BadSampleCounts, Sample, TopicStats
+from estimator.logs.measurements import STREAM_COMPONENTS, BadSampleCounts, Sample, TopicStats
 from estimator.logs.source import RawMessage
 
 _IDENTITY = (1.0, 0.0, 0.0, 0.0)
+# Largest plausible |value| per component: beyond these a value is damage, not physics.
+BOUNDS: dict[str, float] = {
+    **dict.fromkeys(("qw", "qx", "qy", "qz"), 2.0),  # and a norm within [0.5, 2]
+    **dict.fromkeys(("px", "py", "pz"), 1e4),  # m
+    **dict.fromkeys(("wx", "wy", "wz"), 1e3),  # rad/s
+    **dict.fromkeys(("ax", "ay", "az"), 1e4),  # m/s²
+    **dict.fromkeys(("position", "positions", "velocity", "velocities"), 1e4),  # rad, m, /s
+    **dict.fromkeys(("accelerations",), 1e6),
+    **dict.fromkeys(("effort", "value", "fx", "fy", "fz", "tx", "ty", "tz"), 1e6),  # N, N·m
+}
+QUAT = ("qw", "qx", "qy", "qz")
+MAX_TIME_NS = 1 << 62  # |t| beyond this is no clock (int64 headroom for differences)
+MAX_TIME_JUMP_NS = 1_000_000_000  # a gap that can isolate a stream's first or last sample
 _FIRST = (np.zeros(1, dtype=np.intp), np.ones(1, dtype=bool), True)
 
 
@@ -73,6 +98,11 @@ class SampleExtractor:
         if topic is None:
             topic = self._topics[raw.topic] = _TopicState(raw.msg_type, self.keep_times)
         topic.n_messages += 1
+        if not 0 <= raw.log_time_ns < MAX_TIME_NS:
+            topic.count("bad_time")
+            for state in self._streams.get(raw.topic, ()):
+                state.count("bad_time")
+            return []
         if self.keep_times:
             topic.log_times.append(raw.log_time_ns)
         streams = self._streams.get(raw.topic, ())
@@ -94,6 +124,15 @@ class SampleExtractor:
         for state in streams:
             samples.extend(state.samples(raw, records))
         return samples
+
+    def flush(self) -> list[Sample]:
+        """The samples still held back for the time check, once the log has ended."""
+        return [
+            sample
+            for states in self._streams.values()
+            for state in states
+            for sample in state.flush()
+        ]
 
     def bad_counts(self) -> dict[str, BadSampleCounts]:
         """Per config stream: the messages it skipped, by reason."""
@@ -143,8 +182,9 @@ class SampleExtractor:
             return None
         key = (schema.name, schema.encoding, schema.data, raw.message_encoding)
         if key not in self._decoders:
-            try:
-                decoder = DecoderFactory().decoder_for(raw.message_encoding, schema)
+            try:  # its vendored parser prints to stderr on a bad schema: keep that quiet
+                with contextlib.redirect_stderr(io.StringIO()):
+                    decoder = DecoderFactory().decoder_for(raw.message_encoding, schema)
             except Exception:  # a schema text mcap_ros2 cannot parse
                 decoder = None
             self._decoders[key] = decoder
@@ -169,6 +209,9 @@ class _TopicState:
 
     def check(self, records: tuple[Record, ...], log_time_ns: int) -> None:
         stamped = [r for r in records if r.stamp_ns is not None]
+        if any(abs(r.stamp_ns or 0) >= MAX_TIME_NS for r in stamped):
+            self.count("bad_time")
+            return
         if stamped and self.keep_times:
             self.stamps.append((stamped[0].stamp_ns or 0, log_time_ns))
         if any(non_finite(r) for r in records):
@@ -230,7 +273,15 @@ class _StreamState:
             mujoco.mju_negQuat(self.quat_sensor_site, q)
         self.counts = dict.fromkeys(BadSampleCounts.reasons(), 0)
         self.last_t: int | None = None
+        self.pending: list[Sample] = []  # held until the next sample judges their time
+        self.intervals: deque[int] = deque(maxlen=16)  # between the last kept samples
         self.seen: set[str] = set()
+        components = STREAM_COMPONENTS[cfg.kind]
+        if self.columns is not None:
+            components = tuple(TRAJECTORY[c] for c in self.columns)
+        bounds = {**BOUNDS, **cfg.max_abs}
+        self.bound = np.array([bounds.get(c, np.inf) for c in components])
+        self.quat = [components.index(q) for q in QUAT] if QUAT[0] in components else None
 
     def count(self, reason: str) -> None:
         self.counts[reason] += 1
@@ -261,12 +312,62 @@ class _StreamState:
                 continue
             base = record.stamp_ns if self.cfg.stamp == "header" else raw.log_time_ns
             t = (base or 0) + record.delay_ns + self.cfg.time_offset_ns
-            if self.last_t is not None and t <= self.last_t:
-                self.count("duplicate_time" if t == self.last_t else "backwards_time")
+            if abs(t) >= MAX_TIME_NS:
+                self.count("bad_time")
                 continue
-            self.last_t = t
-            out.append(Sample(self.cfg.name, t, raw.log_time_ns, values))
+            out.extend(self.order(Sample(self.cfg.name, t, raw.log_time_ns, values)))
         return out
+
+    def order(self, sample: Sample) -> list[Sample]:
+        """The samples released by this one's arrival: each is judged with the next in view.
+
+        A held sample is a `time_jump` if it is later than the next while the previous kept
+        and the next are in order (its stamp jumped ahead); the stream's first, if a gap
+        over `MAX_TIME_JUMP_NS` and 100 intervals of the samples after it follows it.
+        """
+        self.pending.append(sample)
+        released = []
+        while len(self.pending) >= (3 if self.last_t is None else 2):
+            cur, nxt = self.pending[0].t_ns, self.pending[1].t_ns
+            if self.last_t is None:
+                after = self.pending[2].t_ns - nxt
+                jumped = cur > nxt < self.pending[2].t_ns or (
+                    after > 0 and nxt - cur > max(MAX_TIME_JUMP_NS, 100 * after)
+                )
+            else:
+                jumped = cur > nxt > self.last_t
+            held = self.pending.pop(0)
+            if jumped:
+                self.count("time_jump")
+            else:
+                released.extend(self.keep(held))
+        return released
+
+    def flush(self) -> list[Sample]:
+        """Release the held samples at the end of the log; the last is judged by its gap."""
+        released = []
+        while self.pending:
+            held = self.pending.pop(0)
+            gap = held.t_ns - (self.last_t if self.last_t is not None else held.t_ns)
+            if (
+                not self.pending
+                and self.intervals
+                and gap > max(MAX_TIME_JUMP_NS, 100 * float(np.median(self.intervals)))
+            ):
+                self.count("time_jump")
+            else:
+                released.extend(self.keep(held))
+        return released
+
+    def keep(self, sample: Sample) -> list[Sample]:
+        """[sample] if it is later than the last kept one, else [] and counted."""
+        if self.last_t is not None and sample.t_ns <= self.last_t:
+            self.count("duplicate_time" if sample.t_ns == self.last_t else "backwards_time")
+            return []
+        if self.last_t is not None:
+            self.intervals.append(sample.t_ns - self.last_t)
+        self.last_t = sample.t_ns
+        return [sample]
 
     def row(self, record: Record) -> np.ndarray:
         """(E, K) values of the stream's elements from one record."""
@@ -293,9 +394,20 @@ class _StreamState:
                 raise BadSampleError("wrong_length", "the message carries none of the used fields")
             if (present & ~np.isfinite(values)).any():
                 raise BadSampleError("nan", "NaN or Inf in a used field")
+        self.check_bounds(values)
         if self.rotation is not None:
             self.rotate(values[0])
         return values
+
+    def check_bounds(self, values: np.ndarray) -> None:
+        """Raise `out_of_bounds` for a value beyond its bound or a quaternion far from unit."""
+        with np.errstate(invalid="ignore"):
+            if (np.abs(values) > self.bound).any():
+                raise BadSampleError("out_of_bounds", "a value beyond its physical bound")
+            if self.quat is not None:
+                norm = np.linalg.norm(values[:, self.quat], axis=1)
+                if ((norm < 0.5) | (norm > 2.0)).any():
+                    raise BadSampleError("out_of_bounds", "a quaternion far from unit norm")
 
     def plan(self, names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, bool]:
         """(index (E,), found (E,), all found) of the stream's sources in `names`, cached.

@@ -9,7 +9,9 @@ The stream is read record by record without seeking, so a sample is yielded as s
 message that carries it has arrived (a writer must send unchunked records, or flush chunks,
 for that to be immediate). It gives the same samples, counts and warnings as `read_log` on a
 file with the same bytes: both run `SampleExtractor` over the messages in written order. A
-stream that stops mid-record (the robot crashed) ends the iteration cleanly with a warning.
+stream that stops mid-record (the robot crashed) ends the iteration cleanly with a warning; a
+chunk whose CRC fails is skipped and reported in `lost` (a stream cannot search forward past a
+garbage record length, so that ends it like a cut).
 Memory stays bounded: samples are not kept, and topics keep counts only unless asked for
 `statistics`.
 """
@@ -23,7 +25,7 @@ from estimator.config import Config
 from estimator.logs.measurements import BadSampleCounts, Sample
 from estimator.logs.reader import Log, check_required, extract, finish
 from estimator.logs.samples import SampleExtractor
-from estimator.logs.source import open_stream
+from estimator.logs.source import LostData, open_stream
 
 
 class ByteStreamReader:
@@ -68,6 +70,7 @@ class ByteStreamReader:
                 self._accepted,
                 self._extractor.bad_counts(),
                 available=self._source.topics,
+                damage=self._source.warnings,
             )
 
     def read_all(self) -> Log:
@@ -89,6 +92,11 @@ class ByteStreamReader:
     @property
     def truncated(self) -> bool:
         return self._source.truncated
+
+    @property
+    def lost(self) -> tuple[LostData, ...]:
+        """What damage has cost so far, one `LostData` per damaged region."""
+        return tuple(self._source.lost)
 
     def _start(self) -> None:
         if self._started:
