@@ -167,3 +167,95 @@ def test_a_bad_max_abs_is_one_line(tmp_path, table, message):
     )
     with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
         load_config(rl.write_robot(tmp_path, text))
+
+
+def _rewritten(source, target, change) -> None:
+    """`source` MCAP rewritten to `target` with change(topic, index on topic, log_time, data)
+    → (log_time, data) applied to every message."""
+    from mcap.reader import make_reader
+    from mcap.writer import Writer
+
+    with open(source, "rb") as f, open(target, "wb") as out:
+        writer = Writer(out)
+        writer.start(profile="ros2", library="test")
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        seen: dict[str, int] = {}
+        for schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(
+                    schema.name, schema.encoding, schema.data
+                )
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas[schema.id]
+                )
+            k = seen[channel.topic] = seen.get(channel.topic, -1) + 1
+            log_time, data = change(channel.topic, k, message.log_time, message.data)
+            writer.add_message(channels[channel.id], log_time, data, log_time)
+        writer.finish()
+
+
+def test_estimate_uses_the_rest_of_a_log_with_bad_stamps_and_values(tmp_path, capsys):
+    """One joint stamp 1000 s late, the first mocap stamp 0, a mocap position of 1e300 and a
+    log time ≥ 2⁶³: the estimate runs on everything else and reports what it skipped."""
+    import json
+    import struct
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+
+    def change(topic, k, log_time, data):
+        data = bytearray(data)
+        if topic == "/joint_states" and k == 100:
+            sec = struct.unpack_from("<i", data, 4)[0]
+            struct.pack_into("<i", data, 4, sec + 1000)  # header.stamp.sec (after CDR's 4 bytes)
+        if topic == "/mocap/arm/pose" and k == 0:
+            struct.pack_into("<ii", data, 4, 0, 0)
+        if topic == "/mocap/arm/pose" and k == 50:  # pose.position.x: the last 7 float64
+            struct.pack_into("<d", data, len(data) - 56, 1e300)
+        if topic == "/joint_commands" and k == 200:
+            log_time = (1 << 63) + 5
+        return log_time, bytes(data)
+
+    log = tmp_path / "damaged.mcap"
+    _rewritten(root / "recordings" / "single_joint.mcap", log, change)
+    out = tmp_path / "out"
+    config = root / "configs" / "single_joint.toml"
+    args = ["estimate", str(log), "--config", str(config), "--out", str(out), "--quiet"]
+    assert main([*args, "--init", "measurements"]) == 0
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    skipped = json.loads((out / "summary.json").read_text())["skipped_samples"]
+    assert skipped["joints"]["by_reason"] == {"time_jump": 1}
+    assert skipped["mocap_arm"]["by_reason"] == {"time_jump": 1, "out_of_bounds": 1}
+    assert skipped["command"]["by_reason"] == {"bad_time": 1}
+    assert "joints: skipped 1 of" in err
+
+
+def test_streams_on_different_clocks_are_one_line_not_an_allocation():
+    from estimator.errors import LogError
+    from estimator.logs.measurements import BadSampleCounts, Measurement
+    from estimator.problem import knot_grid
+
+    def stream(name, t0_ns):
+        t = t0_ns + np.arange(10) * 2_000_000
+        values = np.zeros((10, 1, 3))
+        return Measurement(
+            name,
+            "markers",
+            "/m",
+            "site",
+            ("s",),
+            ("px", "py", "pz"),
+            t,
+            t,
+            values,
+            BadSampleCounts(),
+        )
+
+    with pytest.raises(LogError, match=r"sim_clock 0\.000.*wall_clock .*different clocks"):
+        knot_grid(
+            {"sim_clock": stream("sim_clock", 0), "wall_clock": stream("wall_clock", 1 << 60)},
+            0.002,
+        )
