@@ -84,10 +84,10 @@ SETTINGS: Mapping[str, tuple[object, str]] = {
         0.5,
         "look-ahead of a window: the knots past those it keeps, re-solved by the next, s",
     ),
-    "backward_windows": (
-        4,
-        "windows a backward pass reaches: each follows the keys the next one moved, through "
-        "its marginalized past (0: none)",
+    "backward_s": (
+        30.0,
+        "how far back the backward pass reaches, s: each window follows the keys the next one "
+        "moved, through its marginalized past (0: none; memory grows with it)",
     ),
     "max_iterations": (30, "Levenberg–Marquardt iterations per solve (a window has up to 3)"),
     "init": (
@@ -184,7 +184,7 @@ class Settings:
     force_sensor_kernel: str = "cauchy"
     window_s: float = 4.0
     overlap_s: float = 0.5
-    backward_windows: int = 4
+    backward_s: float = 30.0
     max_iterations: int = 30
     init: str = "best"
     tolerance: float = 1e-3
@@ -292,9 +292,8 @@ def _setting_value(config: Config, key: str, value: Any) -> Any:
             raise ConfigError(f"{where}; expected one of " + ", ".join(map(repr, CHOICES[key])))
         return value
     if isinstance(default, int) and not isinstance(default, bool):  # a count
-        least = 0 if key == "backward_windows" else 1
-        if isinstance(value, bool) or not isinstance(value, int) or value < least:
-            raise ConfigError(f"{where}; expected an integer ≥ {least} ({meaning})")
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ConfigError(f"{where}; expected an integer ≥ 1 ({meaning})")
         return value
     number = isinstance(value, int | float) and not isinstance(value, bool)
     what = "a factor" if key.endswith("_scale") else "a number"

@@ -157,7 +157,9 @@ def smooth(
         stages = []
         shared = (init_q[:n_shared], init_b[:n_shared])  # as the previous window left them
         history.append(_Joined(s, prior))
-        del history[: -settings.backward_windows - 1]
+        reach = s - round(settings.backward_s / h)  # the oldest window the pass still moves
+        while len(history) > 1 and history[1].start <= reach:
+            del history[0]
         starts_at = {"measurements": (init_q, init_b)}  # where the physics solve starts
         if settings.init in ("kinematic", "best") and settings.method == "physics":
             # (its bias dims are the physics problem's first: no model-error offset)
