@@ -18,6 +18,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from estimator.rotations import rotation_angles
 from estimator.truth import Series, StateTopics, at_times
 from physics.model import weight as model_weight
 
@@ -59,16 +60,6 @@ def rmse(errors: np.ndarray) -> float:
     if not ok.any():
         return float("nan")
     return float(np.sqrt(np.mean(np.sum(e[ok] ** 2, axis=1))))
-
-
-def rotation_angles(quat_wxyz: np.ndarray, quat_true_wxyz: np.ndarray) -> np.ndarray:
-    """(N,) angle [rad] of the rotation between two quaternion sequences (N, 4), the short way:
-    θ = 2 atan2(‖Im(q_true* ⊗ q)‖, |Re(q_true* ⊗ q)|)."""
-    q = quat_wxyz / np.linalg.norm(quat_wxyz, axis=1, keepdims=True)
-    g = quat_true_wxyz / np.linalg.norm(quat_true_wxyz, axis=1, keepdims=True)
-    w = np.sum(q * g, axis=1)  # Re(g* ⊗ q)
-    v = g[:, :1] * q[:, 1:] - q[:, :1] * g[:, 1:] - np.cross(g[:, 1:], q[:, 1:])  # Im(g* ⊗ q)
-    return 2.0 * np.arctan2(np.linalg.norm(v, axis=1), np.abs(w))
 
 
 def in_contact(force: np.ndarray, threshold: float) -> np.ndarray:

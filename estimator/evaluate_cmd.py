@@ -50,9 +50,9 @@ from estimator.problem import (
     accelerations,
     build_problem,
     model_with_sensors,
-    quat_errors,
     velocities,
 )
+from estimator.rotations import quat_errors
 from estimator.run import estimate, initial_trajectory
 from estimator.simulate.writer import body_twist, state_data
 from estimator.truth import PREFIX, Series, StateTopics, read_metadata, read_state_topics

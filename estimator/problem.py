@@ -44,6 +44,7 @@ from estimator.config import Config, StreamConfig
 from estimator.errors import ConfigError, LogError
 from estimator.logs.align import resample
 from estimator.logs.measurements import Measurement
+from estimator.rotations import jr_inverse, quat_log_between
 from physics.dynamics import make_dynamics
 from physics.errors import UnsupportedModelError
 from physics.softness import Softness, override
@@ -947,8 +948,8 @@ def difference_jacobians(
     for qadr, dadr in rotations.quat_dofs:
         phi = quat_log_between(q1[:, qadr : qadr + 4], q2[:, qadr : qadr + 4])
         rot = slice(dadr, dadr + 3)
-        d2[:, rot] = _jr_inverse(phi)
-        d1[:, rot] = -_jr_inverse(-phi)
+        d2[:, rot] = jr_inverse(phi)
+        d1[:, rot] = -jr_inverse(-phi)
     return d1, d2
 
 
@@ -999,50 +1000,3 @@ class KnotModel:
         if self.known_dq is not None and self.known_dv is not None:
             out[0][...] -= self.known_dq.T
             out[1][...] -= self.known_dv.T
-
-
-def quat_log_between(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
-    """φ = Log(q1⁻¹ ⊗ q2) (K, 3) of unit quaternions (K, 4), the short way round (as
-    mju_subQuat(φ, q2, q1))."""
-    w1, v1 = q1[:, 0], -q1[:, 1:]
-    w2, v2 = q2[:, 0], q2[:, 1:]
-    w = w1 * w2 - np.sum(v1 * v2, axis=1)
-    v = w1[:, None] * v2 + w2[:, None] * v1 + np.cross(v1, v2)
-    sign = np.where(w < 0, -1.0, 1.0)
-    w, v = w * sign, v * sign[:, None]
-    s = np.linalg.norm(v, axis=1)
-    theta = 2.0 * np.arctan2(s, w)
-    scale = np.where(s > 1e-12, theta / np.where(s > 1e-12, s, 1.0), 2.0 / np.maximum(w, 1e-300))
-    return v * scale[:, None]
-
-
-def quat_errors(pred: np.ndarray, meas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """e = Log(meas⁻¹ ⊗ pred) (K, 3) and ∂e/∂pred (K, 3, 4) for linear changes of pred (K, 4).
-
-    pred ⊗ Exp(ξ) ≈ pred + dq gives ξ = 2 Im(pred* ⊗ dq); then de = J_r⁻¹(e) ξ, with
-    J_r⁻¹(φ) = I + ½[φ]× + (1/θ² − (1 + cos θ)/(2θ sin θ)) [φ]×², θ = ‖φ‖.
-    """
-    e = quat_log_between(meas, pred)
-    w2 = pred[:, 0]
-    x, y, z = pred[:, 1], pred[:, 2], pred[:, 3]
-    G = np.stack(
-        [  # Im(q* ⊗ p) as a 3×4 matrix of p = (pw, px, py, pz)
-            np.stack([-x, w2, z, -y], axis=1),
-            np.stack([-y, -z, w2, x], axis=1),
-            np.stack([-z, y, -x, w2], axis=1),
-        ],
-        axis=1,
-    )
-    return e, np.einsum("kij,kjl->kil", _jr_inverse(e), 2.0 * G)
-
-
-def _jr_inverse(phi: np.ndarray) -> np.ndarray:
-    """(K, 3, 3) inverse right Jacobian of SO(3) at φ (K, 3)."""
-    theta = np.linalg.norm(phi, axis=1)
-    hat = np.zeros((len(phi), 3, 3))
-    hat[:, 0, 1], hat[:, 0, 2], hat[:, 1, 2] = -phi[:, 2], phi[:, 1], -phi[:, 0]
-    hat -= hat.transpose(0, 2, 1)
-    small = theta < 1e-6
-    t = np.where(small, 1.0, theta)
-    c = np.where(small, 1.0 / 12.0, 1.0 / t**2 - (1.0 + np.cos(t)) / (2.0 * t * np.sin(t)))
-    return np.eye(3) + 0.5 * hat + c[:, None, None] * (hat @ hat)

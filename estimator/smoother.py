@@ -36,11 +36,10 @@ from estimator.problem import (
     _RotationDofs,
     accelerations,
     difference_jacobians,
-    quat_errors,
-    quat_log_between,
     retract,
     velocities,
 )
+from estimator.rotations import quat_errors, quat_log_between
 from physics.softness import scale as scale_softness
 
 THREADS = 2

@@ -51,6 +51,7 @@ from estimator.errors import PhysfuseError
 from estimator.estimate import Estimate
 from estimator.logs.reader import Log
 from estimator.problem import dof_names
+from estimator.rotations import xyzw
 from physics.cone import Branch
 from physics.model import weight as model_weight
 
@@ -365,7 +366,7 @@ def _log_model(
             entity,
             rr.Transform3D(
                 translation=model.geom_pos[g],
-                quaternion=rr.Quaternion(xyzw=_xyzw(model.geom_quat[g])),
+                quaternion=rr.Quaternion(xyzw=xyzw(model.geom_quat[g])),
             ),
             shape,
             static=True,
@@ -378,7 +379,7 @@ def _log_model(
             rec.log(
                 _body_path(model, b),
                 rr.Transform3D(
-                    translation=xpos[0, b], quaternion=rr.Quaternion(xyzw=_xyzw(xquat[0, b]))
+                    translation=xpos[0, b], quaternion=rr.Quaternion(xyzw=xyzw(xquat[0, b]))
                 ),
                 static=True,
             )
@@ -386,7 +387,7 @@ def _log_model(
         rec.send_columns(
             _body_path(model, b),
             indexes=[_time(knots)],
-            columns=rr.Transform3D.columns(translation=xpos[:, b], quaternion=_xyzw(xquat[:, b])),
+            columns=rr.Transform3D.columns(translation=xpos[:, b], quaternion=xyzw(xquat[:, b])),
         )
 
 
@@ -470,7 +471,7 @@ def _log_measurements(rec: rr.RecordingStream, log: Log, t0_ns: int) -> None:
                 entity,
                 indexes=[_time(m.t_ns[keep] - t0_ns)],
                 columns=rr.Transform3D.columns(
-                    translation=values[keep, :3], quaternion=_xyzw(values[keep, 3:7])
+                    translation=values[keep, :3], quaternion=xyzw(values[keep, 3:7])
                 ),
             )
             rec.log(entity, rr.TransformAxes3D(0.1), static=True)
@@ -632,12 +633,6 @@ def _part(name: str) -> str:
 
 def _indexed(prefix: str, n: int) -> list[str]:
     return [f"{prefix}{i}" for i in range(n)]
-
-
-def _xyzw(quat_wxyz: np.ndarray) -> np.ndarray:
-    """(..., 4) quaternions w, x, y, z (MuJoCo, ROS decode) → x, y, z, w (Rerun)."""
-    q = np.asarray(quat_wxyz, dtype=float)
-    return np.concatenate([q[..., 1:], q[..., :1]], axis=-1)
 
 
 def _start_ns(estimate: Estimate, log: Log | None) -> int:

@@ -22,9 +22,9 @@ from estimator.evaluate import (
     position_nees,
     precision_recall,
     rmse,
-    rotation_angles,
     within,
 )
+from estimator.rotations import rotation_angles
 from estimator.truth import Series, StateTopics
 from physics.model import load_model
 

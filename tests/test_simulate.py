@@ -27,6 +27,7 @@ from estimator.cli import main
 from estimator.config import load_config
 from estimator.logs import read_log
 from estimator.logs.ros2_types import CONTACT_ARRAY_MSG, CONTACT_MSG, message_definition
+from estimator.rotations import quat_mul
 from estimator.simulate import (
     SCENARIOS,
     SimulationError,
@@ -48,7 +49,6 @@ from estimator.simulate.sensors import (
     ImuNoise,
     MocapNoise,
     MocapPoses,
-    quat_mul,
 )
 from estimator.simulate.writer import Ros2Writer
 from physics.dynamics import make_dynamics

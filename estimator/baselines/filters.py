@@ -52,9 +52,9 @@ from estimator.problem import (
     build_problem,
     knot_grid,
     model_with_sensors,
-    quat_errors,
     u_known_along,
 )
+from estimator.rotations import quat_errors, quat_exp, quat_log_between, quat_mul
 from estimator.run import Summary, finish, initial_trajectory
 
 METHODS = ("ekf", "ukf")
@@ -110,16 +110,15 @@ class TangentChart:
         """a ⊖ b (filterpy's residual_x)."""
         out = a - b
         for i in self.rotations:
-            out[i] = _log(_exp(a[i]), _exp(b[i]))
+            out[i] = quat_log_between(quat_exp(b[i])[None], quat_exp(a[i])[None])[0]
         return out
 
     def add(self, x: np.ndarray, dx: np.ndarray) -> np.ndarray:
         """x ⊕ dx (filterpy's state_add)."""
         out = x + dx
         for i in self.rotations:
-            q = _exp(x[i])
-            mujoco.mju_quatIntegrate(q, np.ascontiguousarray(dx[i]), 1.0)  # Exp(x) Exp(dx)
-            out[i] = _log(q, _IDENTITY)
+            q = quat_mul(quat_exp(x[i]), quat_exp(dx[i]))  # Exp(x) Exp(dx)
+            out[i] = quat_log_between(_IDENTITY[None], q[None])[0]
         return out
 
     def mean(self, points: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -127,9 +126,9 @@ class TangentChart:
         rotation (Gauss–Newton from the coordinate mean), the plain mean elsewhere."""
         m = weights @ points
         for i in self.rotations:
-            R = _exp_batch(points[:, i])  # (N, 4)
+            R = quat_exp(points[:, i])  # (N, 4)
             for _ in range(20):
-                mean = np.tile(_exp(m[i]), (len(R), 1))
+                mean = np.tile(quat_exp(m[i]), (len(R), 1))
                 step = weights @ quat_errors(R, mean)[0]  # Σ w_i Log(m⁻¹ R_i)
                 m[i] = self.add(m, _on(i, step, len(m)))[i]
                 if np.linalg.norm(step) < 1e-13:
@@ -138,28 +137,6 @@ class TangentChart:
 
 
 _IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
-
-
-def _exp(rotvec: np.ndarray) -> np.ndarray:
-    """(4,) the unit quaternion Exp(rotvec)."""
-    q = _IDENTITY.copy()
-    mujoco.mju_quatIntegrate(q, np.ascontiguousarray(rotvec, dtype=float), 1.0)
-    return q
-
-
-def _log(q: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """(3,) Log(reference⁻¹ q), the short way round (mju_subQuat)."""
-    out = np.zeros(3)
-    mujoco.mju_subQuat(out, q, reference)
-    return out
-
-
-def _exp_batch(rotvec: np.ndarray) -> np.ndarray:
-    """(N, 4) Exp of each row of rotvec (N, 3): (cos θ/2, sin θ/2 · axis)."""
-    theta = np.linalg.norm(rotvec, axis=1)
-    half = 0.5 * theta
-    scale = np.where(theta > 1e-12, np.sin(half) / np.where(theta > 1e-12, theta, 1.0), 0.5)
-    return np.column_stack([np.cos(half), rotvec * scale[:, None]])
 
 
 def _on(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:

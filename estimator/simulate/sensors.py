@@ -40,9 +40,9 @@ from typing import Any, Protocol
 
 import mujoco
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from estimator.logs import ros2_types
+from estimator.rotations import quat_exp, quat_mul, quat_slerp, rotate_inverse
 from estimator.simulate.errors import SimulationError
 from estimator.simulate.writer import (
     RELIABLE_QOS,
@@ -128,50 +128,6 @@ class Trajectory:
         """The value of the step containing each time, from a per-step array (N, ...)."""
         k, _ = self._locate(t_ns)
         return steps[k]
-
-
-# -- quaternion helpers (w, x, y, z), vectorized over leading axes ------------------------------
-def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a ⊗ b of (..., 4) quaternions."""
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
-
-
-def quat_exp(rotvec: np.ndarray) -> np.ndarray:
-    """Unit quaternions (..., 4) of rotation vectors (..., 3) [rad]."""
-    angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
-    half = 0.5 * angle
-    scale = np.where(angle > 1e-12, np.sin(half) / np.maximum(angle, 1e-300), 0.5)
-    return np.concatenate([np.cos(half), scale * rotvec], axis=-1)
-
-
-def quat_slerp(q0: np.ndarray, q1: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """Shortest-path slerp from q0 to q1 (..., 4) at fractions a (broadcast to (..., 1))."""
-    dot = np.sum(q0 * q1, axis=-1, keepdims=True)
-    q1 = np.where(dot < 0.0, -q1, q1)
-    dot = np.abs(dot)
-    theta = np.arccos(np.clip(dot, -1.0, 1.0))
-    small = theta < 1e-6
-    sin = np.where(small, 1.0, np.sin(theta))
-    w0 = np.where(small, 1.0 - a, np.sin((1.0 - a) * theta) / sin)
-    w1 = np.where(small, a, np.sin(a * theta) / sin)
-    q = w0 * q0 + w1 * q1
-    return q / np.linalg.norm(q, axis=-1, keepdims=True)
-
-
-def rotate_inverse(quat_wxyz: Sequence[float], v: np.ndarray) -> np.ndarray:
-    """R(q)ᵀ v for vectors v (..., 3): site-frame vectors into the sensor frame."""
-    rot = Rotation.from_quat(np.asarray(quat_wxyz, dtype=float), scalar_first=True)
-    return rot.inv().apply(v.reshape(-1, 3)).reshape(v.shape)
 
 
 def random_unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
