@@ -47,6 +47,7 @@ from estimator.logs.measurements import Measurement
 from estimator.rotations import jr_inverse, quat_log_between
 from physics.dynamics import make_dynamics
 from physics.errors import UnsupportedModelError
+from physics.native import use_discrete_inverse
 from physics.softness import Softness, override
 from physics.softness import scale as scale_softness
 
@@ -433,6 +434,7 @@ def model_with_sensors(
     model = spec.compile()
     if base is not None:  # keep the caller's options (e.g. solver settings)
         model.opt.timestep = base.opt.timestep
+    use_discrete_inverse(model)  # the knots' mj_inverse inverts the Euler step, as the engine's
     return model, names
 
 

@@ -15,6 +15,13 @@ from physics.result import Constraints, Contacts, ForwardResult, InverseResult
 from physics.softness import Softness
 
 
+def use_discrete_inverse(model: mujoco.MjModel) -> None:
+    """mj_inverse and mjd_inverseFD as the inverse of the Euler step, its implicit damping
+    included (mjENBL_INVDISCRETE): the one place the flag is set, for this path and for the
+    estimator's own calls at the knots."""
+    model.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_INVDISCRETE
+
+
 class NativeDynamics(Dynamics):
     path: Path = "native"
 
@@ -25,7 +32,7 @@ class NativeDynamics(Dynamics):
                 f"softness r_min={self.softness.r_min}: MuJoCo's C engine floors R at "
                 f"mjMINVAL={mujoco.mjMINVAL} only; use the reference path for another r_min"
             )
-        self.model.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_INVDISCRETE
+        use_discrete_inverse(self.model)
         self._jar = np.zeros(0)
 
     def set_solver(self, solver: str, iterations: int, tolerance: float) -> None:
