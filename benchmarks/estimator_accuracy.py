@@ -23,8 +23,8 @@ from pathlib import Path
 
 from estimator.config import load_config
 from estimator.logs import read_log
-from estimator.problem import CHOICES, Settings
 from estimator.run import estimate, initial_trajectory
+from estimator.settings import CHOICES, Settings
 from estimator.truth import at_times, read_ground_truth, trajectory_errors
 
 ROOT = Path(__file__).resolve().parent.parent

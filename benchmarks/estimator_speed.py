@@ -29,13 +29,13 @@ from estimator.config import load_config
 from estimator.logs import read_log
 from estimator.problem import (
     KnotModel,
-    Settings,
     accelerations,
     build_problem,
     knot_grid,
     velocities,
 )
 from estimator.run import estimate, initial_trajectory
+from estimator.settings import Settings
 from estimator.smoother import THREADS
 
 

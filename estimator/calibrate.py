@@ -32,8 +32,8 @@ import tomlkit
 from estimator.config import MOCAP_KINDS, Config
 from estimator.errors import ConfigError, PhysfuseError
 from estimator.logs.measurements import Measurement
-from estimator.problem import Settings
 from estimator.run import estimate
+from estimator.settings import Settings
 from physics.errors import UnsupportedModelError
 from physics.softness import Softness
 

@@ -38,8 +38,8 @@ from estimator.evaluate import json_ready
 from estimator.logs import read_log
 from estimator.model_checks import check_for_estimate
 from estimator.outputs import OutputFile, OutputFolder
-from estimator.problem import Settings
 from estimator.run import samples_within
+from estimator.settings import Settings
 
 OUTPUTS = ("calibration.json", "calibration.png")  # one run's set, written whole
 

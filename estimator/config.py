@@ -66,8 +66,8 @@ quantities in the joint's own units, rad or m):
 Each stream is resolved to `elements` (model names, the output column order) and `sources`
 (the matching names in the messages), so the reader handles every kind the same way.
 
-    [estimator]               # optional: the estimator's settings (estimator/problem.py:
-                              # SETTINGS), each key, type and range checked here
+    [estimator]               # optional: the estimator's settings (estimator/settings.py:
+                              # Settings), each key, type and range checked here
     [simulate]                # optional and empty: physfuse reads no settings from it (`physfuse
                               # simulate` takes its options on the command line)
 
@@ -386,7 +386,7 @@ class _Parser:
                 )
         # every [estimator] key, type and range, now rather than when an estimate starts
         # (estimator.problem imports this module: imported here)
-        from estimator.problem import Settings
+        from estimator.settings import Settings
 
         Settings.from_config(config)
         return config

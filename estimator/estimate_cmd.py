@@ -33,8 +33,8 @@ from estimator.model_checks import (
     commands_against_efforts,
 )
 from estimator.outputs import OutputFolder
-from estimator.problem import CHOICES, SETTINGS, Settings
 from estimator.run import Summary, estimate, initial_trajectory
+from estimator.settings import CHOICES, SETTINGS, Settings
 from estimator.simulate.writer import (
     Ros2Writer,
     StateLayout,

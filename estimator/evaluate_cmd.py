@@ -46,7 +46,6 @@ from estimator.model_checks import check_for_estimate
 from estimator.outputs import OutputFile
 from estimator.problem import (
     KnotModel,
-    Settings,
     accelerations,
     build_problem,
     model_with_sensors,
@@ -54,6 +53,7 @@ from estimator.problem import (
 )
 from estimator.rotations import quat_errors
 from estimator.run import estimate, initial_trajectory
+from estimator.settings import Settings
 from estimator.simulate.writer import body_twist, state_data
 from estimator.truth import PREFIX, Series, StateTopics, read_metadata, read_state_topics
 from physics.errors import PhysicsError

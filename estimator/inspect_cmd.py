@@ -39,7 +39,7 @@ from estimator.model_checks import (
     contact_settings,
     resting_penetration,
 )
-from estimator.problem import Settings
+from estimator.settings import Settings
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -21,7 +21,7 @@ from estimator.actuation import (
 from estimator.config import Config
 from estimator.errors import ConfigError
 from estimator.logs.measurements import Measurement
-from estimator.problem import Settings, _setting_named
+from estimator.settings import Settings, softness_error
 from physics.dynamics import Path as EnginePath
 from physics.dynamics import check_model
 from physics.errors import UnsupportedModelError
@@ -62,7 +62,7 @@ def check_for_estimate(config: Config, settings: Settings | None = None) -> None
     try:
         settings.apply_softness(model)
     except UnsupportedModelError as err:  # κ below 2h
-        raise ConfigError(f"{config.path}: estimator.{_setting_named(err)}") from None
+        raise softness_error(config, err) from None
     if "reference" in paths:
         try:
             Softness.of_model(model)

@@ -34,7 +34,6 @@ import copy
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 import mujoco
 import numpy as np
@@ -45,271 +44,15 @@ from estimator.errors import ConfigError, LogError
 from estimator.logs.align import resample
 from estimator.logs.measurements import Measurement
 from estimator.rotations import jr_inverse, quat_log_between
+from estimator.settings import Settings, softness_error
 from physics.dynamics import make_dynamics
 from physics.errors import UnsupportedModelError
 from physics.native import use_discrete_inverse
-from physics.softness import Softness, override
-from physics.softness import scale as scale_softness
 
 _OBJ = mujoco.mjtObj
 _SENS = mujoco.mjtSensor
 
-# the [estimator] section of a config: key → (default, meaning)
-SETTINGS: Mapping[str, tuple[object, str]] = {
-    "method": (
-        "physics",
-        "physics (the physics prior) | kinematic (sensors and a smoothness prior)",
-    ),
-    "path": ("native", "physics path for the residuals: native | reference"),
-    "h": (0.0, "knot spacing in s (0: the model's timestep)"),
-    "physics_std_unactuated": (20.0, "σ of u on dofs no actuator drives, N or N·m"),
-    "physics_std_actuated": (20.0, "σ of u − (actuator force of the commands), N or N·m"),
-    "accel_prior_std": (200.0, "σ of the smoothness prior on a_k, units/s²"),
-    "jerk_prior_std": (
-        1000.0,
-        "σ of a constant-acceleration prior on (a_{k+1} − a_k)/h, units/s³ (0: none)",
-    ),
-    "jerk_kernel": (
-        "auto",
-        "robust kernel of the jerk prior, per dof: none | huber | cauchy | auto (physics: "
-        "cauchy, so that impacts get through; kinematic: none)",
-    ),
-    "huber_k": (2.0, "robust kernel threshold k on a whitened residual block's norm"),
-    "physics_kernel": ("cauchy", "robust kernel of the physics factors: huber | cauchy"),
-    "sensor_kernel": ("huber", "robust kernel of the kinematic sensors (mocap, encoders, IMU)"),
-    "force_sensor_kernel": (
-        "cauchy",
-        "robust kernel of force/torque sensors, predicted through the contact model",
-    ),
-    "window_s": (4.0, "length of one smoothing window, s"),
-    "overlap_s": (
-        0.5,
-        "look-ahead of a window: the knots past those it keeps, re-solved by the next, s",
-    ),
-    "backward_s": (
-        30.0,
-        "how far back the backward pass reaches, s: each window follows the keys the next one "
-        "moved, through its marginalized past (0: none; memory grows with it)",
-    ),
-    "max_iterations": (30, "Levenberg–Marquardt iterations per solve (a window has up to 3)"),
-    "init": (
-        "best",
-        "where each window's physics solve starts: measurements (interpolated to the knots) | "
-        "kinematic (the kinematic smoother's solution of the window) | best (from both; the "
-        "solution of lower cost)",
-    ),
-    "tolerance": (1e-3, "stop when an iteration lowers the cost by less than this fraction"),
-    "model_error_std": (
-        0.0,
-        "σ of a generalized force offset on the unactuated dofs, which absorbs a constant model "
-        "error (weight, contact softness), N or N·m (0: none)",
-    ),
-    "model_error_walk": (1.0, "random walk of that offset, N/√s or N·m/√s"),
-    "contact_forces": (
-        "balanced",
-        "contact forces reported: model (the analytic inverse's at the estimate) | balanced "
-        "(those plus the least-squares correction that closes the physics residual where the "
-        "force is known)",
-    ),
-    "contact_force_std": (
-        1.0,
-        "σ of that correction per contact force component, in units of the robot's weight "
-        "(0: no correction)",
-    ),
-    "softness_eps": (
-        None,
-        "ε replacing every solimp of the model, R = ε·diag(A) (paper eq. 27); unset: the "
-        "model's own solimp",
-    ),
-    "softness_kappa": (
-        None,
-        "κ in s replacing every solref of the model (eq. 28; ≥ 2h); unset: the model's own solref",
-    ),
-    "softness_eps_scale": (
-        1.0,
-        "a factor on the model's own ε = (1 − d)/d of every solimp, per-geom values kept "
-        "(after softness_eps when that is set); `physfuse calibrate --setting "
-        "softness_eps_scale` fits it",
-    ),
-    "softness_kappa_scale": (1.0, "a factor on every solref time constant κ of the model"),
-    "fit_softness": (
-        "first_window",
-        "first_window: fit factors on the model's own ε and κ to the log's start (the "
-        "physics and the mocap together), then estimate the log with them, unless the config "
-        "gives the softness (softness_eps, softness_kappa or a scale: taken as calibrated) | "
-        "none",
-    ),
-    "fit_softness_s": (2.0, "how much of the log's start fit_softness fits on, s"),
-    "model_softness_std": (
-        0.1,
-        "relative σ of the model's contact softness (ε and κ), which the covariances account "
-        "for (consider covariance; 0: the model's softness taken as exact)",
-    ),
-    "model_mass_std": (
-        0.05,
-        "relative σ of the model's masses, which the covariances account for (0: exact)",
-    ),
-    "bias_prior_accel": (0.5, "σ of the first accelerometer bias, m/s²"),
-    "bias_prior_gyro": (0.05, "σ of the first gyro bias, rad/s"),
-    "fd_eps": (1e-6, "finite-difference step of mjd_inverseFD"),
-}
-
-CHOICES: Mapping[str, tuple[str, ...]] = {
-    "method": ("physics", "kinematic", "ekf", "ukf", "raw"),
-    "path": ("native", "reference"),
-    "physics_kernel": ("huber", "cauchy"),
-    "sensor_kernel": ("huber", "cauchy"),
-    "force_sensor_kernel": ("huber", "cauchy"),
-    "jerk_kernel": ("auto", "none", "huber", "cauchy"),
-    "init": ("measurements", "kinematic", "best"),
-    "contact_forces": ("balanced", "model"),
-    "fit_softness": ("none", "first_window"),
-}
 MODEL_ERROR = "model error"  # Problem.bias_of key of the generalized force offset
-
-
-@dataclass(frozen=True)
-class Settings:
-    method: str = "physics"
-    path: str = "native"
-    h: float = 0.0
-    physics_std_unactuated: float = 20.0
-    physics_std_actuated: float = 20.0
-    accel_prior_std: float = 200.0
-    # a constant-acceleration (white jerk) prior with σ_j of fast legged-robot motion, set once
-    # (not fitted to any recording); the kinematic baseline's only motion model
-    jerk_prior_std: float = 1000.0
-    jerk_kernel: str = "auto"
-    huber_k: float = 2.0
-    physics_kernel: str = "cauchy"
-    sensor_kernel: str = "huber"
-    force_sensor_kernel: str = "cauchy"
-    window_s: float = 4.0
-    overlap_s: float = 0.5
-    backward_s: float = 30.0
-    max_iterations: int = 30
-    init: str = "best"
-    tolerance: float = 1e-3
-    model_error_std: float = 0.0
-    model_error_walk: float = 1.0
-    contact_forces: str = "balanced"
-    contact_force_std: float = 1.0
-    # the model's own contact softness unless set (an override of every element's)
-    softness_eps: float | None = None
-    softness_kappa: float | None = None
-    fit_softness: str = "first_window"
-    fit_softness_s: float = 2.0
-    softness_eps_scale: float = 1.0
-    softness_kappa_scale: float = 1.0
-    model_softness_std: float = 0.1
-    model_mass_std: float = 0.05
-    bias_prior_accel: float = 0.5
-    bias_prior_gyro: float = 0.05
-    fd_eps: float = 1e-6
-
-    @property
-    def jerk_robust_kernel(self) -> str:
-        """The jerk prior's kernel: "auto" is Cauchy with the physics factors, none without."""
-        if self.jerk_kernel != "auto":
-            return self.jerk_kernel
-        return "cauchy" if self.method == "physics" else "none"
-
-    @property
-    def sets_softness(self) -> bool:
-        """Whether these settings give the contact softness (a value or a factor)."""
-        return (
-            self.softness_eps is not None
-            or self.softness_kappa is not None
-            or self.softness_eps_scale != 1.0
-            or self.softness_kappa_scale != 1.0
-        )
-
-    def apply_softness(self, model: mujoco.MjModel) -> None:
-        """Override the model's own softness where softness_eps / softness_kappa are set,
-        then scale it by softness_eps_scale / softness_kappa_scale."""
-        override(model, eps=self.softness_eps, kappa=self.softness_kappa)
-        scale_softness(model, self.softness_eps_scale, self.softness_kappa_scale)
-
-    @classmethod
-    def from_config(cls, config: Config) -> Settings:
-        """Read the optional [estimator] table; unknown keys and bad values name themselves
-        (`load_config` runs this, so that a bad setting fails before anything is read)."""
-        table = config.sections.get("estimator", {})
-        if not isinstance(table, Mapping):
-            raise ConfigError(
-                f"{config.path}: estimator = {table!r}; expected a table [estimator] of settings"
-            )
-        unknown = [key for key in table if key not in SETTINGS]
-        if unknown:
-            raise ConfigError(
-                f"{config.path}: estimator.{unknown[0]} is not a setting "
-                f"(settings: {', '.join(SETTINGS)})"
-            )
-        values = {key: _setting_value(config, key, value) for key, value in table.items()}
-        settings = cls(**values)
-        try:  # validates ε and κ
-            Softness(
-                **{
-                    name: value
-                    for name, value in (
-                        ("eps", settings.softness_eps),
-                        ("kappa", settings.softness_kappa),
-                    )
-                    if value is not None
-                }
-            )
-        except UnsupportedModelError as err:
-            raise ConfigError(f"{config.path}: estimator.{_setting_named(err)}") from None
-        return settings
-
-
-# numeric settings that must be > 0: σ, thresholds, lengths and steps that divide or scale (the
-# others may be 0, which means none, exact or the model's own)
-POSITIVE_SETTINGS = frozenset(
-    {
-        "physics_std_unactuated",
-        "physics_std_actuated",
-        "accel_prior_std",
-        "huber_k",
-        "window_s",
-        "max_iterations",
-        "model_error_walk",
-        "softness_kappa",
-        "softness_eps_scale",
-        "softness_kappa_scale",
-        "fit_softness_s",
-        "bias_prior_accel",
-        "bias_prior_gyro",
-        "fd_eps",
-    }
-)
-
-
-def _setting_value(config: Config, key: str, value: Any) -> Any:
-    """One [estimator] value checked against its setting's type and range (ConfigError)."""
-    default, meaning = SETTINGS[key]
-    where = f"{config.path}: estimator.{key} = {value!r}"
-    if key in CHOICES:
-        if not isinstance(value, str) or value not in CHOICES[key]:
-            raise ConfigError(f"{where}; expected one of " + ", ".join(map(repr, CHOICES[key])))
-        return value
-    if isinstance(default, int) and not isinstance(default, bool):  # a count
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ConfigError(f"{where}; expected an integer ≥ 1 ({meaning})")
-        return value
-    number = isinstance(value, int | float) and not isinstance(value, bool)
-    what = "a factor" if key.endswith("_scale") else "a number"
-    bound = "> 0" if key in POSITIVE_SETTINGS else "≥ 0"
-    if not number or not math.isfinite(value) or value < 0:
-        raise ConfigError(f"{where}; expected {what} {bound} ({meaning})")
-    if value == 0 and key in POSITIVE_SETTINGS:
-        raise ConfigError(f"{where}; expected {what} > 0 ({meaning})")
-    return float(value)
-
-
-def _setting_named(err: UnsupportedModelError) -> str:
-    """Softness's message "softness kappa=… is …" as the setting's: "softness_kappa=… is …"."""
-    return str(err).replace("softness ", "softness_", 1)
 
 
 @dataclass(frozen=True)
@@ -513,7 +256,7 @@ def build_problem(
     try:
         settings.apply_softness(model)
     except UnsupportedModelError as err:  # κ below 2h
-        raise ConfigError(f"{config.path}: estimator.{_setting_named(err)}") from None
+        raise softness_error(config, err) from None
     if t_ns is None:
         t_ns = knot_grid(measurements, h)
     blocks: list[SensorBlock] = []

@@ -22,7 +22,6 @@ from estimator.logs.measurements import Measurement
 from estimator.problem import (
     MODEL_ERROR,
     Problem,
-    Settings,
     accelerations,
     build_problem,
     dof_names,
@@ -32,6 +31,7 @@ from estimator.problem import (
     u_known_along,
     velocities,
 )
+from estimator.settings import Settings
 from estimator.smoother import (
     Linearizer,
     MarginalPrior,

@@ -14,8 +14,13 @@ from estimator.actuation import actuator_kind, commanded_force
 from estimator.cli import main
 from estimator.config import load_config
 from estimator.logs import read_log
-from estimator.problem import Settings, build_problem, knot_grid, u_known_along
+from estimator.problem import (
+    build_problem,
+    knot_grid,
+    u_known_along,
+)
 from estimator.run import initial_trajectory
+from estimator.settings import Settings
 
 ROOT = Path(__file__).resolve().parent.parent
 

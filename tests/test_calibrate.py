@@ -13,7 +13,7 @@ from estimator.calibrate import calibrate, default_grid, parabola
 from estimator.cli import main
 from estimator.config import load_config
 from estimator.logs import read_log
-from estimator.problem import Settings
+from estimator.settings import Settings
 from physics.softness import Softness
 
 

@@ -13,8 +13,9 @@ from estimator.config import load_config
 from estimator.contact_forces import balanced_constraints, contact_jacobian, project_to_cone
 from estimator.errors import ConfigError
 from estimator.logs import read_log
-from estimator.problem import Settings, build_problem
+from estimator.problem import build_problem
 from estimator.run import collect_estimate, estimate
+from estimator.settings import Settings
 from estimator.simulate.writer import contact_wrenches
 from estimator.truth import at_times, read_state_topics
 from physics.dynamics import make_dynamics

@@ -15,8 +15,12 @@ from mcap_ros2.reader import read_ros2_messages
 from estimator.cli import main
 from estimator.config import load_config
 from estimator.logs import read_log
-from estimator.problem import Settings, build_problem, knot_grid
+from estimator.problem import (
+    build_problem,
+    knot_grid,
+)
 from estimator.run import collect_estimate, initial_trajectory
+from estimator.settings import Settings
 from estimator.smoother import BandedSystem, Linearizer
 from estimator.truth import at_times, read_ground_truth
 

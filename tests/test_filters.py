@@ -16,8 +16,8 @@ from estimator.config import Config, load_config
 from estimator.errors import ConfigError
 from estimator.logs import read_log
 from estimator.logs.measurements import Measurement
-from estimator.problem import Settings
 from estimator.run import initial_trajectory
+from estimator.settings import Settings
 from estimator.truth import at_times, read_ground_truth, trajectory_errors
 
 ROOT = Path(__file__).resolve().parent.parent

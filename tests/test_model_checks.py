@@ -17,13 +17,13 @@ from estimator.config import load_config
 from estimator.logs import read_log
 from estimator.model_checks import resting_penetration
 from estimator.problem import (
-    Settings,
     build_problem,
     dof_names,
     joint_name,
     knot_grid,
     model_with_sensors,
 )
+from estimator.settings import Settings
 
 ROOT = Path(__file__).resolve().parent.parent
 LOG = ROOT / "recordings" / "quadruped_trot.mcap"

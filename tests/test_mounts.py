@@ -13,8 +13,12 @@ from estimator.cli import main
 from estimator.config import load_config
 from estimator.errors import ConfigError
 from estimator.logs import read_log
-from estimator.problem import Settings, build_problem, knot_grid
+from estimator.problem import (
+    build_problem,
+    knot_grid,
+)
 from estimator.run import initial_trajectory
+from estimator.settings import Settings
 from estimator.smoother import Linearizer
 
 ROOT = Path(__file__).resolve().parent.parent

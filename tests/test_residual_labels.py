@@ -9,8 +9,13 @@ import pytest
 
 from estimator.config import load_config
 from estimator.logs import read_log
-from estimator.problem import Settings, build_problem, dof_names, knot_grid
+from estimator.problem import (
+    build_problem,
+    dof_names,
+    knot_grid,
+)
 from estimator.run import initial_trajectory, largest_residuals, residual_labels, residuals_by_type
+from estimator.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -23,7 +23,6 @@ from estimator.logs import read_log
 from estimator.logs.measurements import Measurement
 from estimator.problem import (
     KnotModel,
-    Settings,
     accelerations,
     averaged_at_knots,
     build_problem,
@@ -31,6 +30,7 @@ from estimator.problem import (
     velocities,
     without_saturated,
 )
+from estimator.settings import Settings
 from estimator.simulate.sensors import Trajectory
 from estimator.simulate.simulation import scenario_config, simulate
 

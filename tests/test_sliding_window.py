@@ -12,8 +12,8 @@ import pytest
 
 from estimator.config import load_config
 from estimator.logs import read_log
-from estimator.problem import Settings
 from estimator.run import estimate
+from estimator.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 

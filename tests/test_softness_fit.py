@@ -9,8 +9,12 @@ import numpy as np
 
 from estimator.config import load_config
 from estimator.logs import read_log
-from estimator.problem import Settings, build_problem, knot_grid
+from estimator.problem import (
+    build_problem,
+    knot_grid,
+)
 from estimator.run import initial_trajectory
+from estimator.settings import Settings
 from estimator.smoother import fit_softness, solve_window
 from estimator.truth import at_times, read_ground_truth, read_metadata
 

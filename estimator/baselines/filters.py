@@ -48,7 +48,6 @@ from estimator.logs.measurements import Measurement
 from estimator.problem import (
     Problem,
     SensorBlock,
-    Settings,
     build_problem,
     knot_grid,
     model_with_sensors,
@@ -56,6 +55,7 @@ from estimator.problem import (
 )
 from estimator.rotations import quat_errors, quat_exp, quat_log_between, quat_mul
 from estimator.run import Summary, finish, initial_trajectory
+from estimator.settings import Settings
 
 METHODS = ("ekf", "ukf")
 GATE_PROBABILITY = 0.999  # a block is used when its Mahalanobis² < χ²(dim) at this quantile
