@@ -248,8 +248,15 @@ def _inspect(path: Path, config_path: Path) -> tuple[str, str]:
     return ("exact" if code == 0 else "error"), ""
 
 
-def run_inputs(seed: int, n: int, seconds: float, readers: tuple[str, ...] = READERS) -> dict:
-    """`n` mutated inputs from `seed`: outcome counts per (mutation, reader), crash sites."""
+def run_inputs(
+    seed: int,
+    n: int,
+    seconds: float,
+    readers: tuple[str, ...] = READERS,
+    only: frozenset[str] | None = None,
+) -> dict:
+    """`n` mutated inputs from `seed`: outcome counts per (mutation, reader), crash sites.
+    only: read just the inputs of these mutations (the same inputs as a whole run makes)."""
     rng = np.random.default_rng(seed)
     base = originals(seconds)
     configs: dict[Path, Config] = {o.config_path: load_config(o.config_path) for o in base}
@@ -264,6 +271,8 @@ def run_inputs(seed: int, n: int, seconds: float, readers: tuple[str, ...] = REA
             o = base[int(rng.integers(len(base)))]
             mutation = names[int(rng.integers(len(names)))]
             data = MUTATIONS[mutation](rng, o)
+            if only is not None and mutation not in only:
+                continue
             path.write_bytes(data)
             config = configs[o.config_path]
             results = _run_readers(readers, path, data, config, o.config_path, clean[o.name])
@@ -311,12 +320,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="first seed (one per batch)")
     parser.add_argument("--batch", type=int, default=500, help="inputs per batch")
     parser.add_argument("--seconds", type=float, default=0.1, help="of each recording")
+    parser.add_argument(
+        "--only",
+        nargs="+",
+        choices=list(MUTATIONS),
+        help="read only these mutations' inputs (the same inputs a whole run makes)",
+    )
     parser.add_argument("--out", type=Path, default=Path("out/fuzz"), help="output dir")
     args = parser.parse_args(argv)
 
     started = time.perf_counter()
     batches = [
-        (args.seed + b, min(args.batch, args.inputs - b * args.batch), args.seconds)
+        (
+            args.seed + b,
+            min(args.batch, args.inputs - b * args.batch),
+            args.seconds,
+            frozenset(args.only) if args.only else None,
+        )
         for b in range((args.inputs + args.batch - 1) // args.batch)
     ]
     total: Counter[tuple[str, str, str]] = Counter()
@@ -340,9 +360,9 @@ def main(argv: list[str] | None = None) -> int:
     return 0 if not failures else 1
 
 
-def _batch(batch: tuple[int, int, float]) -> dict:
-    seed, n, seconds = batch
-    return run_inputs(seed, n, seconds)
+def _batch(batch: tuple[int, int, float, frozenset[str] | None]) -> dict:
+    seed, n, seconds, only = batch
+    return run_inputs(seed, n, seconds, only=only)
 
 
 def _report(total, failures, examples, args, wall) -> dict:
@@ -355,6 +375,7 @@ def _report(total, failures, examples, args, wall) -> dict:
                 table[f"{mutation} / {reader}"] = row
     return {
         "inputs": args.inputs,
+        "only": sorted(args.only) if args.only else None,
         "seed": args.seed,
         "seconds_of_each_recording": args.seconds,
         "outcomes": outcomes,

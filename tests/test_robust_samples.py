@@ -259,3 +259,22 @@ def test_streams_on_different_clocks_are_one_line_not_an_allocation():
             {"sim_clock": stream("sim_clock", 0), "wall_clock": stream("wall_clock", 1 << 60)},
             0.002,
         )
+
+
+def test_a_joint_name_with_damaged_bytes_is_undecodable_not_a_missing_joint(robot, tmp_path):
+    _, config = robot
+    topic, k = "/joint_states", 7
+    v = rl.value(topic, k)
+    names = ["hip_joint", "kn\x00e_joint", "extra"]  # the knee's name hit by damage
+    fields = rl.joint_state(
+        rl.sample_stamp(topic, k),
+        names,
+        [v["q"][0], v["q"][1], 0.5],
+        [v["qd"][0], v["qd"][1], 0.0],
+        [v["tau"][0], v["tau"][1], 0.0],
+    )
+    bad = rl.Msg(topic, rl.SAMPLE_TOPICS[topic][0], rl.sample_log_time(topic, k), fields)
+    _, log = _read(tmp_path, config, _with({(topic, k): bad}))
+    joints = log.measurements["joints"]
+    assert joints.bad.undecodable == 1 and joints.bad.total == 1
+    assert np.isfinite(joints.values).all()  # no sample with the knee missing

@@ -172,9 +172,12 @@ class SampleExtractor:
                 topic.stamps.append((stamp_ns(header), raw.log_time_ns))
             return None
         try:
-            return to_records(msg)
+            records = to_records(msg)
         except (AttributeError, TypeError, ValueError) as err:  # fields not as the type says
             raise BadSampleError("undecodable", str(err)) from err
+        if not all(_is_name(n) for r in records for n in r.names):  # damaged bytes in a name
+            raise BadSampleError("undecodable", "a name with control or invalid bytes")
+        return records
 
     def _decoder(self, raw: RawMessage) -> Callable[[bytes], Any] | None:
         schema = raw.schema
@@ -189,6 +192,12 @@ class SampleExtractor:
                 decoder = None
             self._decoders[key] = decoder
         return self._decoders[key]
+
+
+def _is_name(name: str) -> bool:
+    """A joint, frame or marker name as a ROS node writes it: printable, no bytes the decoder
+    had to replace (a name with them is damage, not an entry of another joint)."""
+    return name.isprintable() and "\ufffd" not in name
 
 
 class _TopicState:
