@@ -278,3 +278,24 @@ def test_a_joint_name_with_damaged_bytes_is_undecodable_not_a_missing_joint(robo
     joints = log.measurements["joints"]
     assert joints.bad.undecodable == 1 and joints.bad.total == 1
     assert np.isfinite(joints.values).all()  # no sample with the knee missing
+
+
+def test_an_array_length_damaged_to_zero_is_undecodable_not_a_missing_field(robot, tmp_path):
+    """Damage that shortens an array leaves its values' bytes unread: the message is flagged
+    (`undecodable`), not read as a JointState without velocities."""
+    _, config = robot
+    topic, k = "/joint_states", 7
+    msgs = _with({})
+    path = tmp_path / "log.mcap"
+    rl.write_mcap(path, msgs, compression="none", enable_crcs=False)
+    v = rl.value(topic, k)
+    position = np.array([v["q"][1], 0.5, v["q"][0]], dtype="<f8").tobytes()  # as sample_message
+    velocity = np.array([v["qd"][1], 0.0, v["qd"][0]], dtype="<f8").tobytes()
+    data = path.read_bytes()
+    clean = read_log(path, config).measurements["joints"]
+    count = data.index(position) + len(position)  # velocity's element count follows position
+    assert data[count : count + 4] == (3).to_bytes(4, "little") and velocity in data
+    path.write_bytes(data[:count] + bytes(4) + data[count + 4 :])
+    joints = read_log(path, config).measurements["joints"]
+    assert joints.bad.undecodable == 1 and joints.bad.total == 1
+    assert len(joints.t_ns) == len(clean.t_ns) - 1

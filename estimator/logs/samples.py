@@ -38,6 +38,7 @@ from typing import Any
 
 import mujoco
 import numpy as np
+from mcap_ros2._dynamic import serialize_dynamic  # as estimator.simulate.writer
 from mcap_ros2.decoder import DecoderFactory
 
 from estimator.config import Config, StreamConfig
@@ -90,7 +91,7 @@ class SampleExtractor:
             for stream in config.streams.values():
                 self._streams.setdefault(stream.topic, []).append(_StreamState(stream))
         self._topics: dict[str, _TopicState] = {}
-        self._decoders: dict[tuple[Any, ...], Callable[[bytes], Any] | None] = {}
+        self._decoders: dict[tuple[Any, ...], _Codec | None] = {}
 
     def feed(self, raw: RawMessage) -> list[Sample]:
         """The samples `raw` contributes (usually 0 or 1 per stream on its topic)."""
@@ -157,15 +158,17 @@ class SampleExtractor:
 
     def _decode(self, raw: RawMessage, topic: _TopicState) -> tuple[Record, ...] | None:
         """Records of a message; None if its type has no record decoder (stamp still taken)."""
-        decoder = self._decoder(raw)
-        if decoder is None:
+        codec = self._codec(raw)
+        if codec is None:
             raise BadSampleError("unknown_type", f"no ROS 2 schema for {raw.msg_type or 'it'}")
         try:
-            msg = decoder(raw.data)
+            msg = codec.decode(raw.data)
         except Exception as err:  # any failure inside the CDR parser means bad bytes
             raise BadSampleError("undecodable", str(err)) from err
         topic.decoded = True
         to_records = DECODERS.get(raw.msg_type)
+        if to_records is not None:
+            codec.check_length(msg, raw.data)
         if to_records is None:
             header = getattr(msg, "header", None)
             if header is not None and hasattr(header, "stamp") and topic.keep_times:
@@ -179,7 +182,7 @@ class SampleExtractor:
             raise BadSampleError("undecodable", "a name with control or invalid bytes")
         return records
 
-    def _decoder(self, raw: RawMessage) -> Callable[[bytes], Any] | None:
+    def _codec(self, raw: RawMessage) -> _Codec | None:
         schema = raw.schema
         if schema is None:
             return None
@@ -187,11 +190,29 @@ class SampleExtractor:
         if key not in self._decoders:
             try:  # its vendored parser prints to stderr on a bad schema: keep that quiet
                 with contextlib.redirect_stderr(io.StringIO()):
-                    decoder = DecoderFactory().decoder_for(raw.message_encoding, schema)
+                    decode = DecoderFactory().decoder_for(raw.message_encoding, schema)
+                    encode = serialize_dynamic(schema.name, schema.data.decode())[schema.name]
+                codec = None if decode is None else _Codec(decode, encode)
             except Exception:  # a schema text mcap_ros2 cannot parse
-                decoder = None
-            self._decoders[key] = decoder
+                codec = None
+            self._decoders[key] = codec
         return self._decoders[key]
+
+
+class _Codec:
+    """A schema's CDR decoder, and its encoder to check the message used all of its bytes."""
+
+    def __init__(self, decode: Callable[[bytes], Any], encode: Callable[[Any], bytes]):
+        self.decode = decode
+        self.encode = encode
+
+    def check_length(self, msg: Any, data: bytes) -> None:
+        """Bytes left over after the message (beyond the ≤ 3 bytes of alignment a writer may
+        pad with) mean a damaged length decoded a shorter array: the values read are not the
+        logged ones."""
+        left = len(data) - len(self.encode(msg))
+        if left > 3:
+            raise BadSampleError("undecodable", f"{left} bytes left after the message")
 
 
 def _is_name(name: str) -> bool:
