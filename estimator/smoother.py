@@ -23,7 +23,6 @@ import queue
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
-import gtsam
 import mujoco
 import numpy as np
 import scipy.linalg
@@ -45,6 +44,7 @@ from physics.softness import scale as scale_softness
 THREADS = 2
 LAMBDA_MIN = 1e-9  # Levenberg–Marquardt's least damping, and its first
 LAMBDA_REJECTED = 1e-5  # the least damping after a rejected step
+MARGINAL_REGULARIZER = 1e-14  # on the unit diagonal of S H S (`BandedSystem.marginal_std`)
 
 
 @dataclass(frozen=True)
@@ -640,38 +640,31 @@ class BandedSystem:
 
     def marginal_std(self, nv: int, warnings: list[str], keys: range | None = None) -> np.ndarray:
         """(T, nv) marginal standard deviations of x_k at `keys` (default: all; NaN at the
-        others), by GTSAM's Marginals of this system.
+        others): the diagonal of H⁻¹ = S (S H S)⁻¹ S (S = diag(H)^−½) by a banded Cholesky
+        of the scaled system and the selected inverse of its band (`banded_inverse_blocks`).
 
-        Contact directions make JᵀJ stiff (≈1e12–1e17) beside weakly observed ones (1e6), so
-        GTSAM eliminates the Jacobi-scaled system S H S (S = diag(H)^−½, unit diagonal; Cov =
-        S (S H S)⁻¹ S), regularized by 1e-8 on that diagonal, a prior far weaker than any
-        measurement.
-        """
+        Contact directions make JᵀJ stiff (≈1e12–1e17) beside weakly observed ones (1e6), and
+        S H S has eigenvalues far below 1: an accelerometer at every knot puts ≈4e14 on the
+        diagonal where the mocap knows the position as a whole to ≈1e6 (an eigenvalue ≈2e-9);
+        a free object's tilt in a gripper at h = 0.5 ms reaches ≈5e-12. GTSAM's Marginals
+        declared that system indeterminate below a regularizer of 1e-8 on the unit diagonal,
+        which halved the position σ of every floating base. MARGINAL_REGULARIZER only keeps
+        the directions nothing observes finite (there σ comes out huge, as it should)."""
         T, nz, _ = self.diag.shape
-        graph = gtsam.GaussianFactorGraph()
-        zero, z = np.zeros((nz, nz)), np.zeros(nz)
-        d = np.einsum("kii->ki", self.diag)
-        scale = 1.0 / np.sqrt(d + 1e-12 * max(float(d.max()), 1.0))  # (T, nz)
-        for k in range(T):  # S H S as one unary factor per key and one binary per coupled pair
-            diag = scale[k, :, None] * self.diag[k] * scale[k, None, :]
-            graph.add(gtsam.HessianFactor(k, diag + 1e-8 * np.eye(nz), z, 0.0))
-            for offset, blocks in enumerate(self.lower, start=1):
-                if k + offset < T:
-                    # (S H S)_{k, k+offset}
-                    upper = scale[k, :, None] * blocks[k].T * scale[k + offset, None, :]
-                    graph.add(gtsam.HessianFactor(k, k + offset, zero, upper, z, zero, z, 0.0))
         std = np.full((T, nv), np.nan)
+        s, ab = self.scaled_band()
+        ab = ab.copy(order="F")
+        ab[0] += MARGINAL_REGULARIZER
         try:
-            at = gtsam.VectorValues()  # a linear system: the covariances don't depend on it
-            for k in range(T):
-                at.insert(k, z)
-            marginals = gtsam.Marginals(graph, at)
-            for k in range(T) if keys is None else keys:
-                variance = np.diag(marginals.marginalCovariance(k))[:nv] * scale[k, :nv] ** 2
-                std[k] = np.sqrt(np.clip(variance, 0, None))
-        except RuntimeError as err:
-            first = str(err).strip().splitlines()[0] if str(err).strip() else "ill-posed"
-            warnings.append(f"covariances unavailable (GTSAM: {first}); qpos_std is NaN")
+            L = scipy.linalg.cholesky_banded(ab, overwrite_ab=True, lower=True, check_finite=False)
+        except np.linalg.LinAlgError as err:
+            warnings.append(f"covariances unavailable ({err}); qpos_std is NaN")
+            return std
+        first = 0 if keys is None or len(keys) == 0 else keys.start
+        Z = banded_inverse_blocks(L, nz, first)
+        variance = np.einsum("kii->ki", Z)[:, :nv] * s.reshape(T, nz)[first:, :nv] ** 2
+        chosen = np.arange(first, T) if keys is None else np.asarray(keys, dtype=int)
+        std[chosen] = np.sqrt(np.clip(variance[chosen - first], 0.0, None))
         return std
 
     def scaled_band(self) -> tuple[np.ndarray, np.ndarray]:
@@ -723,6 +716,49 @@ class BandedSystem:
         )
         y = scipy.linalg.cho_solve_banded((factor, True), -s * self.g.reshape(-1))
         return (s * y).reshape(self.g.shape)
+
+
+def banded_inverse_blocks(L: np.ndarray, nz: int, first: int = 0) -> np.ndarray:
+    """The diagonal blocks Z_kk (T − first, nz, nz) of A⁻¹ for A = L Lᵀ, L lower banded in
+    LAPACK storage (L[d, j] = L_{j+d, j}), keys of nz unknowns, without forming A⁻¹: the
+    selected inversion (Takahashi's recurrence) from Lᵀ Z = L⁻¹, key k from the last down,
+
+        Z_{k, k+1:k+m} = −L_kk⁻ᵀ B_kᵀ Z_{k+1:k+m, k+1:k+m},
+        Z_kk = L_kk⁻ᵀ (L_kk⁻¹ − B_kᵀ Z_{k, k+1:k+m}ᵀ),
+
+    with B_k the rows of L below L_kk in key k's columns and m keys its band reaches; Z is
+    needed only within the band, held as a rolling window of m + 1 keys."""
+    kd, N = L.shape[0] - 1, L.shape[1]
+    T = N // nz
+    m = -(-kd // nz)  # keys below the diagonal block a column reaches
+    w = (m + 1) * nz
+    # C[k, t, c] = L[k nz + t, k nz + c]: key k's columns, rows k nz … k nz + w − 1
+    t, c = np.arange(w)[:, None], np.arange(nz)[None, :]
+    d = t - c
+    inside = (d >= 0) & (d <= kd)
+    cols = np.arange(T)[:, None, None] * nz + c[None]
+    rows = cols + d[None]
+    C = np.where(
+        inside[None] & (rows < N), L[np.clip(d, 0, kd)[None], np.minimum(cols, N - 1)], 0.0
+    )
+    out = np.empty((T - first, nz, nz))
+    W = np.zeros((w, w))  # Z over keys k … k + m (rows beyond the last key stay 0)
+    for k in range(T - 1, first - 1, -1):
+        Lkk, B = C[k, :nz], C[k, nz:]
+        sub = W[: w - nz, : w - nz]  # keys k + 1 … k + m, the previous window's first m
+        X = scipy.linalg.solve_triangular(Lkk, B.T @ sub, lower=True, trans="T")
+        inv_Lkk = scipy.linalg.solve_triangular(Lkk, np.eye(nz), lower=True)
+        Zkk = scipy.linalg.solve_triangular(Lkk, inv_Lkk + B.T @ X.T, lower=True, trans="T")
+        Zkk = 0.5 * (Zkk + Zkk.T)
+        new = np.empty((w, w))
+        new[nz:, nz:] = sub
+        new[:nz, nz:] = -X
+        new[nz:, :nz] = -X.T
+        new[:nz, :nz] = Zkk
+        W = new
+        if k >= first:
+            out[k - first] = Zkk
+    return out
 
 
 def honest(blocks: list[Block]) -> list[Block]:
@@ -868,7 +904,7 @@ def marginal_prior(
         part.g[:start],
     )
     s, ab = past.scaled_band()
-    ab[0] += 1e-12  # (bias dims no factor of the past reaches yet)
+    ab[0] += MARGINAL_REGULARIZER  # (bias dims no factor of the past reaches yet)
     L = scipy.linalg.cholesky_banded(ab, lower=True, check_finite=False)
     rhs = np.hstack([H_er, part.g[:start].reshape(-1, 1)])
     X = s[:, None] * scipy.linalg.cho_solve_banded((L, True), s[:, None] * rhs)
@@ -1068,41 +1104,4 @@ def consider_variance(
         # this much throughout, where the linear sensitivity may pass through zero (a load
         # moving from foot to foot)
         variance += np.mean((S[:, :nv] * sigma) ** 2, axis=0)
-    return variance
-    s, ab = system.scaled_band()
-
-    def physics_rows(model: mujoco.MjModel) -> np.ndarray:
-        """The physics rows at the solution (the linearization may be a step before it)."""
-        lin = Linearizer(replace(problem, model=model))
-        try:
-            return lin.blocks(lin.terms(result.qpos, False), result.bias)[0].r
-        finally:
-            lin.close()
-
-    at_solution = None
-    for name in parameters:
-        perturb, setting = CONSIDERED[name]
-        sigma = getattr(problem.settings, setting)
-        if sigma <= 0:
-            continue
-        if at_solution is None:
-            at_solution = physics_rows(problem.model)
-        model = copy.deepcopy(problem.model)
-        perturb(model, 1.0 + CONSIDER_STEP)
-        dr = (physics_rows(model) - at_solution) / CONSIDER_STEP  # per unit relative change
-        g = np.zeros_like(system.g)  # Jᵀ ∂r/∂θ by key: knot row i reaches keys i, i+1, i+2
-        for a in range(3):
-            g[a : a + len(dr), :nv] += np.einsum(
-                "kmc,km->kc", physics.J[:, :, a * nv : (a + 1) * nv], dr
-            )
-        if physics.J_bias is not None:
-            g[1 : 1 + len(dr), nv:] += np.einsum("kmc,km->kc", physics.J_bias, dr)
-        try:
-            sensitivity = replace(system, g=g).damped_step(s, ab, LAMBDA_MIN)[:, :nv]
-        except np.linalg.LinAlgError:
-            continue
-        # its RMS over the window, per dof: a constant parameter moves the estimate by about
-        # this much throughout, where the linear sensitivity may pass through zero (a load
-        # moving from foot to foot)
-        variance += np.mean((sensitivity * sigma) ** 2, axis=0)
     return variance
