@@ -661,13 +661,13 @@ def retract(model: mujoco.MjModel, qpos: np.ndarray, dx: np.ndarray) -> np.ndarr
 
 
 @dataclass(frozen=True)
-class _RotationDofs:
+class RotationDofs:
     """Where rotations live in qpos/qvel: (qpos address of the quaternion, dof address)."""
 
     quat_dofs: tuple[tuple[int, int], ...]
 
     @classmethod
-    def of(cls, model: mujoco.MjModel) -> _RotationDofs:
+    def of(cls, model: mujoco.MjModel) -> RotationDofs:
         pairs = []
         for j in range(model.njnt):
             if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
@@ -678,7 +678,7 @@ class _RotationDofs:
 
 
 def difference_jacobians(
-    model: mujoco.MjModel, rotations: _RotationDofs, q1: np.ndarray, q2: np.ndarray
+    model: mujoco.MjModel, rotations: RotationDofs, q1: np.ndarray, q2: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """∂(q2 ⊖ q1)/∂x1 and ∂(q2 ⊖ q1)/∂x2 for right perturbations q ⊕ x, for N pairs q1, q2
     (N, nq). Both are block-diagonal, so each is (N, nv, 3) by dof group: row d on the
@@ -712,7 +712,7 @@ class KnotModel:
     def __post_init__(self) -> None:
         self.data = mujoco.MjData(self.problem.model)
         self.model = self.problem.model
-        self.rotations = _RotationDofs.of(self.model)
+        self.rotations = RotationDofs.of(self.model)
         self.known_dq: np.ndarray | None = None
         self.known_dv: np.ndarray | None = None
         self.reference = (

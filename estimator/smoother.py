@@ -31,8 +31,8 @@ from estimator.problem import (
     MODEL_ERROR,
     KnotModel,
     Problem,
+    RotationDofs,
     SensorBlock,
-    _RotationDofs,
     accelerations,
     difference_jacobians,
     retract,
@@ -172,7 +172,7 @@ class Linearizer:
         self.idle: queue.SimpleQueue[KnotModel] = queue.SimpleQueue()
         for _ in range(THREADS):
             self.idle.put(KnotModel(problem, problem.settings.path))
-        self.rotations = _RotationDofs.of(problem.model)
+        self.rotations = RotationDofs.of(problem.model)
         self.rotation_dofs = [d for _, d in self.rotations.quat_dofs]  # first of each 3
         rotation = {d + i for d in self.rotation_dofs for i in range(3)}
         self.vector_dofs = np.array(sorted(set(range(problem.model.nv)) - rotation), dtype=int)

@@ -155,7 +155,7 @@ def test_model_error_offset_is_on_the_unactuated_dofs_and_reported_by_name():
 def test_difference_jacobians_of_rotations():
     """∂(q2 ⊖ q1)/∂x on a free joint's rotation, against differences of mj_differentiatePos;
     by dof group (row d on the columns of d's group; zero elsewhere)."""
-    from estimator.problem import _RotationDofs, difference_jacobians
+    from estimator.problem import RotationDofs, difference_jacobians
 
     model = load_config(ROOT / "configs" / "humanoid_push.toml").load_model()
     rng = np.random.default_rng(3)
@@ -163,7 +163,7 @@ def test_difference_jacobians_of_rotations():
     q2 = model.qpos0.copy()
     mujoco.mj_integratePos(model, q1, rng.normal(0, 0.5, model.nv), 1.0)
     mujoco.mj_integratePos(model, q2, rng.normal(0, 0.5, model.nv), 1.0)
-    rotations = _RotationDofs.of(model)
+    rotations = RotationDofs.of(model)
     d1, d2 = difference_jacobians(model, rotations, q1[None], q2[None])
     group = {d: [d] for d in range(model.nv)}  # the columns of each row's group
     for _, r in rotations.quat_dofs:
