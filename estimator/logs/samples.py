@@ -167,13 +167,12 @@ class SampleExtractor:
             raise BadSampleError("undecodable", str(err)) from err
         topic.decoded = True
         to_records = DECODERS.get(raw.msg_type)
-        if to_records is not None:
-            codec.check_length(msg, raw.data)
         if to_records is None:
             header = getattr(msg, "header", None)
             if header is not None and hasattr(header, "stamp") and topic.keep_times:
                 topic.stamps.append((stamp_ns(header), raw.log_time_ns))
             return None
+        codec.check_length(msg, raw.data)
         try:
             records = to_records(msg)
         except (AttributeError, TypeError, ValueError) as err:  # fields not as the type says
@@ -188,13 +187,14 @@ class SampleExtractor:
             return None
         key = (schema.name, schema.encoding, schema.data, raw.message_encoding)
         if key not in self._decoders:
-            try:  # its vendored parser prints to stderr on a bad schema: keep that quiet
-                with contextlib.redirect_stderr(io.StringIO()):
+            decode = encode = None
+            # its vendored parser prints to stderr on a bad schema: keep that quiet
+            with contextlib.redirect_stderr(io.StringIO()):
+                with contextlib.suppress(Exception):  # a schema text mcap_ros2 cannot parse
                     decode = DecoderFactory().decoder_for(raw.message_encoding, schema)
+                with contextlib.suppress(Exception):  # (then the length goes unchecked)
                     encode = serialize_dynamic(schema.name, schema.data.decode())[schema.name]
-                codec = None if decode is None else _Codec(decode, encode)
-            except Exception:  # a schema text mcap_ros2 cannot parse
-                codec = None
+            codec = None if decode is None else _Codec(decode, encode)
             self._decoders[key] = codec
         return self._decoders[key]
 
@@ -202,7 +202,7 @@ class SampleExtractor:
 class _Codec:
     """A schema's CDR decoder, and its encoder to check the message used all of its bytes."""
 
-    def __init__(self, decode: Callable[[bytes], Any], encode: Callable[[Any], bytes]):
+    def __init__(self, decode: Callable[[bytes], Any], encode: Callable[[Any], bytes] | None):
         self.decode = decode
         self.encode = encode
 
@@ -210,7 +210,12 @@ class _Codec:
         """Bytes left over after the message (beyond the ≤ 3 bytes of alignment a writer may
         pad with) mean a damaged length decoded a shorter array: the values read are not the
         logged ones."""
-        left = len(data) - len(self.encode(msg))
+        if self.encode is None:
+            return
+        try:
+            left = len(data) - len(self.encode(msg))
+        except Exception as err:  # fields the type's own encoder refuses
+            raise BadSampleError("undecodable", str(err)) from err
         if left > 3:
             raise BadSampleError("undecodable", f"{left} bytes left after the message")
 
