@@ -756,8 +756,7 @@ def banded_inverse_blocks(L: np.ndarray, nz: int, first: int = 0) -> np.ndarray:
         new[nz:, :nz] = -X.T
         new[:nz, :nz] = Zkk
         W = new
-        if k >= first:
-            out[k - first] = Zkk
+        out[k - first] = Zkk
     return out
 
 
