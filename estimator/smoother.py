@@ -21,7 +21,7 @@ from __future__ import annotations
 import copy
 import queue
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import mujoco
 import numpy as np
@@ -63,10 +63,10 @@ class WindowResult:
     # the last linearization (at the solution, or one step below the tolerance before it),
     # its rows' σ scaled to what the residuals show (`honest`): the covariances' system
     system: BandedSystem | None = None
-    # that linearization as solved (unscaled) and its physics rows, for the sensitivity of
+    # that linearization as solved (unscaled) and its factors' rows, for the sensitivity of
     # the estimate to the model's parameters (`consider_variance`)
     solved_system: BandedSystem | None = None
-    physics: Block | None = None
+    blocks: list[Block] = field(default_factory=list)
     next_prior: MarginalPrior | None = None  # for the window that starts at `marginalize`
 
 
@@ -439,27 +439,10 @@ class Linearizer:
             rows = slice(row, row + b.r.shape[1])
             if b.dofwise and b.J is not None:
                 b = Block(b.name, b.r, self.dense(b.J), b.cost, b.valid)
-            J_z, cols = self.z_columns(b)
+            J_z, cols = z_columns(p, b)
             J[:, rows, cols] = J_z
             row = rows.stop
         return r, J
-
-    def z_columns(self, block: Block) -> tuple[np.ndarray, np.ndarray]:
-        """A block's Jacobian on the columns of (z_{k−1}, z_k, …) its rows reach (nonzero at
-        some knot; a mocap row reaches a few of x_k's): (K, m, n) and their n column indices
-        (x of key a: a·nz + dof; the bias b_k: nz + nv + i)."""
-        p = self.problem
-        nv, nz = p.model.nv, p.nz
-        assert block.J is not None
-        x_cols = np.arange(block.J.shape[2])
-        x_cols = x_cols // nv * nz + x_cols % nv
-        reach = np.flatnonzero(np.any(block.J, axis=(0, 1)))
-        J = block.J if len(reach) == len(x_cols) else block.J[:, :, reach]
-        cols = x_cols[reach]
-        if block.J_bias is not None:
-            J = np.concatenate([J, block.J_bias], axis=2)
-            cols = np.r_[cols, nz + nv + np.arange(p.nb)]
-        return J, cols
 
     # -- sensor biases (IMU, force/torque): prior on b_0 and random walk ---------------------
 
@@ -492,6 +475,28 @@ class Linearizer:
 
 
 # ---------------------------------------------------------------------------------------------
+def z_columns(problem: Problem, block: Block) -> tuple[np.ndarray, np.ndarray]:
+    """A block's Jacobian on the columns of (z_{k−1}, z_k, …) its rows reach (nonzero at some
+    knot; a mocap row reaches a few of x_k's): (K, m, n) and their n column indices (x of key
+    a: a·nz + dof; the bias b_k: nz + nv + i)."""
+    nv, nz = problem.model.nv, problem.nz
+    assert block.J is not None
+    x_cols = np.arange(block.J.shape[2])
+    x_cols = x_cols // nv * nz + x_cols % nv
+    reach = np.flatnonzero(np.any(block.J, axis=(0, 1)))
+    J = block.J if len(reach) == len(x_cols) else block.J[:, :, reach]
+    cols = x_cols[reach]
+    if block.J_bias is not None:
+        J = np.concatenate([J, block.J_bias], axis=2)
+        cols = np.r_[cols, nz + nv + np.arange(problem.nb)]
+    return J, cols
+
+
+def _dot(a: list[np.ndarray], b: list[np.ndarray]) -> float:
+    """Σ aᵢ·bᵢ over blocks of rows."""
+    return float(sum(np.sum(x * y) for x, y in zip(a, b, strict=True)))
+
+
 # the normal equations, block-banded
 
 
@@ -541,7 +546,7 @@ class BandedSystem:
         groups.append([b for b in blocks if b.sensor])
         parts = []  # (r, [(J, its columns in the union)], number of columns, runs)
         for group in groups:
-            reach = [lin.z_columns(b) for b in group]
+            reach = [z_columns(p, b) for b in group]
             if len(reach) == 1:  # its own columns, in their order
                 cols = reach[0][1]
             else:
@@ -859,7 +864,7 @@ def solve_window(
             lin.passes[False],
             BandedSystem.of(honest(blocks), lin, bias, qpos) if blocks else system,
             system,
-            blocks[0] if blocks else None,
+            blocks,
             marginal_prior(lin, blocks, *at, marginalize) if marginalize and blocks else None,
         )
     finally:
@@ -1012,15 +1017,15 @@ def fit_softness(
     rounds = 0
     for rounds in range(1, FIT_ROUNDS + 1):  # noqa: B007
         system = result.solved_system
-        if system is None or result.physics is None:
+        if system is None or not result.blocks:
             break
-        r = _physics_rows(problem, problem.model, result)
+        r = _rows_at(problem, problem.model, result)
         parts = [_parameter_sensitivity(problem, result, system, name, r) for name in names]
-        D = np.array([[np.sum(a[0] * b[0]) for b in parts] for a in parts])
+        D = np.array([[_dot(a[0], b[0]) for b in parts] for a in parts])
         D += np.eye(2) / sigma**2
         CS = np.array([[np.sum(a[1] * b[2]) for b in parts] for a in parts])  # Cᵀ S = −Cᵀ H⁻¹ C
         M = D + CS
-        g = np.array([np.sum(dr * r) for dr, _, _ in parts]) + theta / sigma**2
+        g = np.array([_dot(dr, r) for dr, _, _ in parts]) + theta / sigma**2
         step = -np.linalg.solve(M, g)
         theta += step
         model = copy.deepcopy(base)
@@ -1039,35 +1044,50 @@ def fit_softness(
     return fit, result
 
 
-def _physics_rows(problem: Problem, model: mujoco.MjModel, result: WindowResult) -> np.ndarray:
-    """The physics rows (K, nv) at the result's solution, with `model`."""
+def _rows_at(problem: Problem, model: mujoco.MjModel, result: WindowResult) -> list[np.ndarray]:
+    """Every factor's rows (robust weights applied) at the result's solution with `model`,
+    block by block as `result.blocks`."""
     lin = Linearizer(replace(problem, model=model))
     try:
-        return lin.blocks(lin.terms(result.qpos, False), result.bias)[0].r
+        return [b.r for b in lin.blocks(lin.terms(result.qpos, False), result.bias)]
     finally:
         lin.close()
 
 
+def key_gradient(problem: Problem, blocks: list[Block], rows: list[np.ndarray]) -> np.ndarray:
+    """Jᵀ r by key (T, nz): the blocks' Jacobians on `rows` (one (K, m) per block) — those of
+    the physics and the sensors; the priors', on the motion alone, left out."""
+    nz, K = problem.nz, problem.T - 2
+    out = np.zeros((problem.T, nz))
+    for block, r in zip(blocks, rows, strict=True):
+        if block.dofwise or block.J is None:
+            continue
+        J, cols = z_columns(problem, block)
+        flat = np.einsum("kmc,km->kc", J, r)
+        for a in range(int(cols.max(initial=-1)) // nz + 1):  # knot row i reaches key i + a
+            at = cols // nz == a
+            out[a : a + K, cols[at] % nz] += flat[:, at]
+    return out
+
+
 def _parameter_sensitivity(
-    problem: Problem, result: WindowResult, system: BandedSystem, name: str, at: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For one CONSIDERED parameter θ (a relative change): ∂r/∂θ of the physics rows (K, nv),
-    C = Jᵀ ∂r/∂θ by key (T, nz) and the estimate's sensitivity S = −H⁻¹ C (T, nz); `at`: the
-    physics rows at the result's solution (`_physics_rows`)."""
-    physics = result.physics
-    assert physics is not None and physics.J is not None
+    problem: Problem,
+    result: WindowResult,
+    system: BandedSystem,
+    name: str,
+    at: list[np.ndarray],
+) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """For one CONSIDERED parameter θ (a relative change): ∂r/∂θ of every factor's rows (one
+    (K, m) per block: the physics, and the sensors the model predicts through θ — a
+    force/torque sensor through the contacts), C = Jᵀ ∂r/∂θ by key (T, nz) and the
+    estimate's sensitivity S = −H⁻¹ C (T, nz) with H that of `system`; `at`: the rows at the
+    result's solution (`_rows_at`)."""
     perturb, _ = CONSIDERED[name]
     model = copy.deepcopy(problem.model)
     perturb(model, 1.0 + CONSIDER_STEP)
-    dr = (_physics_rows(problem, model, result) - at) / CONSIDER_STEP
-    nv = problem.model.nv
-    C = np.zeros_like(system.g)  # knot row i reaches keys i, i+1, i+2
-    for a in range(3):
-        C[a : a + len(dr), :nv] += np.einsum(
-            "kmc,km->kc", physics.J[:, :, a * nv : (a + 1) * nv], dr
-        )
-    if physics.J_bias is not None:
-        C[1 : 1 + len(dr), nv:] += np.einsum("kmc,km->kc", physics.J_bias, dr)
+    moved = _rows_at(problem, model, result)
+    dr = [(r - r0) / CONSIDER_STEP for r, r0 in zip(moved, at, strict=True)]
+    C = key_gradient(problem, result.blocks, dr)
     s, ab = system.scaled_band()
     return dr, C, replace(system, g=C).damped_step(s, ab, LAMBDA_MIN)
 
@@ -1079,14 +1099,14 @@ def consider_variance(
     which it does not estimate (Schmidt's consider covariance): per parameter θ — the contact
     softness ε and κ and the masses, each as a relative scale with σ_θ from the settings
     (model_softness_std, model_mass_std) — the estimate's sensitivity S_θ = −H⁻¹ Jᵀ ∂r/∂θ
-    (H, J of the solved system and its physics rows, ∂r/∂θ by a finite difference of the
-    physics residuals at the solution) adds (S_θ σ_θ)², as its mean over the window per dof.
-    A contact softer than modeled lets the robot sit lower: the height's variance grows by
-    that much."""
-    system, physics = result.solved_system, result.physics
+    (H, J of the solved system; ∂r/∂θ of every factor's rows by a finite difference at the
+    solution: the physics, and the sensors predicted through θ — a force/torque sensor
+    through the contacts) adds (S_θ σ_θ)², as its mean over the window per dof. A contact
+    softer than modeled lets the robot sit lower: the height's variance grows by that much."""
+    system = result.solved_system
     nv = problem.model.nv
     variance = np.zeros((problem.T, nv))
-    if system is None or physics is None or physics.J is None:
+    if system is None or not result.blocks:
         return variance
     at_solution = None
     for name in parameters:
@@ -1094,7 +1114,7 @@ def consider_variance(
         if sigma <= 0:
             continue
         if at_solution is None:  # (the linearization may be a step before the solution)
-            at_solution = _physics_rows(problem, problem.model, result)
+            at_solution = _rows_at(problem, problem.model, result)
         try:
             _, _, S = _parameter_sensitivity(problem, result, system, name, at_solution)
         except np.linalg.LinAlgError:

@@ -64,3 +64,33 @@ def test_considered_softness_predicts_how_far_a_re_solved_estimate_moves():
     assert np.all(predicted == predicted[0])  # the window's RMS, at every knot
     assert actual > 2e-5  # it moves: tens of micrometres
     assert predicted[0] == pytest.approx(actual, rel=0.15)
+
+
+def test_a_force_sensor_predicted_through_the_contacts_enters_the_sensitivity():
+    """The arm holding its box, κ × 1.02: the box moves by what S_κ predicts from every
+    factor's rows (within a factor 1.5 of re-solving the window), where the physics rows
+    alone predict a sixth of it — the wrist force/torque sensor, predicted through the
+    fingers' contacts, is what the contact's softness moves most."""
+    config = load_config(ROOT / "configs" / "arm_box.toml")
+    log = read_log(ROOT / "recordings" / "arm_box.mcap", config)
+    t_ns = knot_grid(log.measurements, 0.002)[400:500]
+    settings = Settings(tolerance=1e-10, max_iterations=60, model_mass_std=0.0)
+    problem = build_problem(config, log.measurements, settings, t_ns)
+    qpos = initial_trajectory(problem.model, log.measurements, t_ns)
+    solved = solve_window(problem, qpos, np.zeros((problem.T, problem.nb)), covariance=False)
+    step, box = 0.02, slice(7, 10)
+    model = copy.deepcopy(problem.model)
+    smoother._scaled_timeconst(model, 1.0 + step)
+    moved = solve_window(replace(problem, model=model), solved.qpos, solved.bias, covariance=False)
+    actual = np.sqrt(np.mean(np.sum((moved.qpos[:, box] - solved.qpos[:, box]) ** 2, axis=1)))
+    at = smoother._rows_at(problem, problem.model, solved)
+    system = solved.solved_system
+    dr, _, S = smoother._parameter_sensitivity(problem, solved, system, "softness_kappa", at)
+    predicted = step * np.sqrt(np.mean(np.sum(S[:, box] ** 2, axis=1)))
+    physics_only = smoother.key_gradient(problem, solved.blocks[:1], dr[:1])
+    s, ab = system.scaled_band()
+    S_physics = replace(system, g=physics_only).damped_step(s, ab, smoother.LAMBDA_MIN)
+    predicted_physics = step * np.sqrt(np.mean(np.sum(S_physics[:, box] ** 2, axis=1)))
+    assert actual > 2e-6  # micrometres
+    assert actual / 1.5 < predicted < 1.5 * actual
+    assert predicted_physics < 0.3 * actual
