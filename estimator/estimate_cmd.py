@@ -1,5 +1,8 @@
 """`physfuse estimate LOG --config CONFIG --out DIR [--spawn | --serve]`: smooth a whole log.
 
+Many logs (`LOG...`: files, globs, folders, list files) with `--workers N` or `--ray-address
+ADDR` run as a fleet of Ray tasks, DIR/<log name> each (estimator/fleet.py).
+
 Writes DIR/estimate.mcap (the `/estimate/...` topic layout), DIR/estimate.rrd (Rerun) and
 DIR/summary.json, and prints a summary — with errors against ground truth when the log has
 `/ground_truth/...` topics (a simulated log). DIR is checked before the log is read and the
@@ -23,8 +26,9 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
+from estimator import fleet
 from estimator.config import load_config
-from estimator.errors import LogError
+from estimator.errors import ConfigError, LogError
 from estimator.estimate import Estimate
 from estimator.logs import Measurement, read_log
 from estimator.model_checks import (
@@ -49,10 +53,31 @@ OUTPUTS = ("estimate.mcap", "estimate.rrd", "summary.json")  # one run's set, wr
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "log", type=Path, help="ROS 2 MCAP file, rosbag2 folder, FIFO, or - for standard input"
+        "log",
+        type=Path,
+        nargs="+",
+        help="ROS 2 MCAP file, rosbag2 folder, FIFO, or - for standard input; several (files, "
+        "globs, folders of logs, .txt lists): one estimate each, as Ray tasks",
     )
-    parser.add_argument("--config", type=Path, required=True, help="TOML config (configs/)")
-    parser.add_argument("--out", type=Path, default=Path("out/estimate"), help="output dir")
+    parser.add_argument(
+        "--config",
+        type=Path,
+        required=True,
+        help="TOML config (configs/); with several logs, a folder: FOLDER/<log name>.toml each",
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("out/estimate"),
+        help="output dir (several logs: DIR/<log name> each, DIR/fleet.csv and fleet.json)",
+    )
+    fleet = parser.add_mutually_exclusive_group()
+    fleet.add_argument(
+        "--workers", type=int, help="several logs on a local Ray with N workers (default: cores)"
+    )
+    fleet.add_argument(
+        "--ray-address", help="several logs on an existing Ray cluster (e.g. HEAD_IP:6379)"
+    )
     view = parser.add_mutually_exclusive_group()
     view.add_argument("--spawn", action="store_true", help="open a Rerun viewer")
     view.add_argument("--serve", action="store_true", help="serve a Rerun web viewer")
@@ -81,6 +106,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if len(args.log) > 1 or args.workers or args.ray_address or _names_many(args.log[0]):
+        return _run_fleet(args)
+    args.log = args.log[0]
     config = load_config(args.config)
     settings = Settings.from_config(config)
     overrides = {
@@ -143,6 +171,48 @@ def run(args: argparse.Namespace) -> int:
     if args.serve:
         serve_until_interrupted()
     return 0
+
+
+def _names_many(log: Path) -> bool:
+    """A glob, a list file or a folder of logs (not one rosbag2 folder)."""
+    text = str(log)
+    return (
+        any(c in text for c in "*?[")
+        or (log.suffix in fleet.LIST_SUFFIXES and log.is_file())
+        or (log.is_dir() and not (log / "metadata.yaml").exists())
+    )
+
+
+def _run_fleet(args: argparse.Namespace) -> int:
+    """Several logs: one estimate each as a Ray task; the fleet's table; status 1 when a log
+    failed."""
+    if args.spawn or args.serve:
+        raise ConfigError("--spawn / --serve open one log's estimate: give one log")
+    if args.workers is not None and args.workers < 1:
+        raise ConfigError(f"--workers {args.workers}: expected 1 or more")
+    logs = fleet.expand_logs(args.log)
+    options = []
+    for flag, value in (
+        ("--method", args.method),
+        ("--path", args.path),
+        ("--window", args.window),
+        ("--iterations", args.iterations),
+        ("--init", args.init),
+    ):
+        if value is not None:
+            options += [flag, str(value)]
+    workers = f"{args.workers} workers" if args.workers else "a worker per core"
+    where = (
+        f"the Ray cluster at {args.ray_address}" if args.ray_address else f"a local Ray, {workers}"
+    )
+    print(f"estimating {len(logs)} logs on {where}", file=sys.stderr)
+    progress = None if args.quiet else fleet.print_progress
+    rows = fleet.run_fleet(
+        logs, args.config, args.out, options, args.workers, args.ray_address, progress
+    )
+    print(fleet.table(rows))
+    print(f"outputs: {args.out / 'fleet.csv'}, {args.out / 'fleet.json'}, {args.out}/<log name>/")
+    return 0 if all(r.status == "ok" for r in rows) else 1
 
 
 def skipped_samples(measurements: Mapping[str, Measurement]) -> dict[str, dict[str, Any]]:
