@@ -287,7 +287,10 @@ def write_estimate_mcap(
 def _accuracy(
     log_path: Path, model: mujoco.MjModel, measurements: Any, est: Estimate
 ) -> dict[str, dict[str, float]] | None:
-    """Errors of the raw measurements and of the estimate against ground truth, if any."""
+    """Errors of the raw measurements and of the estimate against ground truth, if any (a
+    stream — standard input, a FIFO — is read once: none)."""
+    if not (log_path.is_file() or log_path.is_dir()):
+        return None
     try:
         truth = at_times(*read_ground_truth(log_path, model), est.t_ns)
     except LogError:

@@ -1,0 +1,186 @@
+"""Many logs as Ray tasks (estimator/fleet.py): which logs a command line names, one folder
+per log, a bad log reported in one line while the others go on, and a task whose worker is
+killed run again — on a real local Ray."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimator.errors import ConfigError
+from estimator.fleet import expand_logs, output_names
+from estimator.truth import read_state_topics
+
+ROOT = Path(__file__).resolve().parent.parent
+PHYSFUSE = [sys.executable, "-m", "estimator.cli"]
+
+
+def test_logs_are_named_by_files_globs_folders_and_lists(tmp_path):
+    for name in ("a.mcap", "b.mcap", "notes.md"):
+        (tmp_path / name).write_bytes(b"")
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    listed = tmp_path / "logs.txt"
+    listed.write_text("b.mcap  # the second\n\n# a comment line\nbag\n")
+    assert expand_logs([tmp_path]) == [tmp_path / "a.mcap", tmp_path / "b.mcap", bag]
+    assert expand_logs([Path(f"{tmp_path}/*.mcap")]) == [tmp_path / "a.mcap", tmp_path / "b.mcap"]
+    assert expand_logs([listed, tmp_path / "b.mcap"]) == [tmp_path / "b.mcap", bag]
+    assert expand_logs([bag]) == [bag]  # a rosbag2 folder is one log
+    with pytest.raises(ConfigError, match=r"\*\.db3: no log there"):
+        expand_logs([Path(f"{tmp_path}/*.db3")])
+
+
+def test_logs_of_the_same_name_take_their_folders_names():
+    logs = [Path("day1/robot/run.mcap"), Path("day2/robot/run.mcap"), Path("day2/other.mcap")]
+    assert output_names(logs) == ["day1_robot_run", "day2_robot_run", "day2_other"]
+    assert output_names([Path("x/a.mcap"), Path("y/b.mcap")]) == ["a", "b"]
+
+
+def _run(args, **kwargs):
+    return subprocess.run(
+        [*PHYSFUSE, *args], capture_output=True, text=True, cwd=ROOT, timeout=600, **kwargs
+    )
+
+
+def test_a_fleet_estimates_each_log_and_reports_a_bad_one_in_one_line(tmp_path):
+    """Two logs on a local Ray of 2 workers, the configs from a folder: the good one gets
+    its whole output folder; the one that is not an MCAP file is one line in the table and
+    in fleet.json, and the status is 1."""
+    configs = tmp_path / "configs"
+    configs.mkdir()
+    shutil.copy(ROOT / "configs" / "single_joint.toml", configs / "single_joint.toml")
+    shutil.copy(ROOT / "configs" / "single_joint.toml", configs / "broken.toml")
+    broken = tmp_path / "broken.mcap"
+    broken.write_bytes(b"not an mcap file")
+    out = tmp_path / "out"
+    done = _run(
+        [
+            "estimate",
+            "recordings/single_joint.mcap",
+            str(broken),
+            "--config",
+            str(configs),
+            "--out",
+            str(out),
+            "--workers",
+            "2",
+            "--method",
+            "raw",
+        ]
+    )
+    assert done.returncode == 1, done.stderr
+    assert "Traceback" not in done.stderr + done.stdout
+    rows = {Path(r["log"]).name: r for r in json.loads((out / "fleet.json").read_text())}
+    assert rows["single_joint.mcap"]["status"] == "ok"
+    assert rows["single_joint.mcap"]["duration_s"] == pytest.approx(3.0, abs=0.05)
+    assert rows["broken.mcap"]["status"] == "failed"
+    assert rows["broken.mcap"]["error"] == f"{broken}: not an MCAP file (starts with b'not an m')"
+    assert sorted(p.name for p in (out / "single_joint").iterdir()) == [
+        "estimate.mcap",
+        "estimate.rrd",
+        "summary.json",
+    ]
+    assert not (out / "broken").exists()  # an output folder is whole or absent
+    assert (out / "fleet.csv").read_text().count("\n") == 3  # header and one row per log
+    assert "1 of 2 logs estimated" in done.stdout
+
+
+def _workers_running_the_task() -> list[int]:
+    """PIDs of Ray workers inside an `estimate_one` task (Ray titles them ray::estimate_one)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                command = (entry / "cmdline").read_bytes()
+            except OSError:
+                continue
+            if command.startswith(b"ray::estimate_one"):
+                pids.append(int(entry.name))
+    return pids
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="finds the Ray worker through /proc")
+def test_a_task_whose_worker_is_killed_runs_again_with_the_same_result(tmp_path):
+    """The log is a FIFO, so the task waits on it; its worker is SIGKILLed there; Ray runs
+    the task again on a new worker, which then reads the log: the estimate is the one a
+    single process makes of the same log."""
+    fifo = tmp_path / "single_joint.mcap"
+    os.mkfifo(fifo)
+    config = str(ROOT / "configs" / "single_joint.toml")
+    out = tmp_path / "fleet"
+    fleet = subprocess.Popen(
+        [
+            *PHYSFUSE,
+            "estimate",
+            str(fifo),
+            "--config",
+            config,
+            "--out",
+            str(out),
+            "--workers",
+            "1",
+            "--method",
+            "raw",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        killed = _wait_for(_workers_running_the_task)
+        os.kill(killed[0], signal.SIGKILL)
+        retried = _wait_for(lambda: [p for p in _workers_running_the_task() if p not in killed])
+        assert retried
+        writer = threading.Thread(
+            target=lambda: fifo.write_bytes(
+                (ROOT / "recordings" / "single_joint.mcap").read_bytes()
+            )
+        )
+        writer.start()
+        _, stderr = fleet.communicate(timeout=300)
+        writer.join(timeout=60)
+    finally:
+        fleet.kill()
+    assert fleet.returncode == 0, stderr
+    single = tmp_path / "single"
+    done = _run(
+        [
+            "estimate",
+            "recordings/single_joint.mcap",
+            "--config",
+            config,
+            "--out",
+            str(single),
+            "--method",
+            "raw",
+            "--quiet",
+        ]
+    )
+    assert done.returncode == 0, done.stderr
+    by_fleet = read_state_topics(out / "single_joint" / "estimate.mcap", prefix="/estimate")
+    alone = read_state_topics(single / "estimate.mcap", prefix="/estimate")
+    assert by_fleet.joint_names == alone.joint_names
+    np.testing.assert_array_equal(by_fleet.joints.t_ns, alone.joints.t_ns)
+    np.testing.assert_array_equal(by_fleet.joints.values, alone.joints.values)
+
+
+def _wait_for(find, timeout_s: float = 120.0):
+    start = time.monotonic()
+    while time.monotonic() - start < timeout_s:
+        found = find()
+        if found:
+            return found
+        time.sleep(0.2)
+    raise AssertionError(f"nothing found in {timeout_s} s")
