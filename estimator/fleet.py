@@ -37,6 +37,7 @@ COLUMNS = (
     "position_mm",
     "joint_deg",
     "node",
+    "node_id",
     "out",
 )
 
@@ -53,6 +54,7 @@ class LogResult:
     position_mm: float | None = None  # against ground truth where the log has it: bodies' mean
     joint_deg: float | None = None
     node: str = ""  # the host that ran it
+    node_id: str = ""  # and its Ray node
     out: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -116,8 +118,11 @@ def config_for(log: Path, config: Path) -> Path:
 
 
 def estimate_one(argv: list[str], transcript: str) -> dict[str, Any]:
-    """Run `physfuse estimate` with argv in this process (a Ray worker), its output into
-    `transcript`; its exit code, its error line and where it ran."""
+    """Run `physfuse estimate` with argv in this process (a Ray worker, one CPU: MuJoCo on one
+    thread), its output into `transcript`; its exit code, its error line and where it ran."""
+    os.environ.setdefault("PHYSFUSE_THREADS", "1")  # (read when the estimator is imported)
+    import ray
+
     from estimator.cli import main
 
     buffer = io.StringIO()
@@ -140,6 +145,7 @@ def estimate_one(argv: list[str], transcript: str) -> dict[str, Any]:
         else "",
         "wall_s": time.perf_counter() - start,
         "node": socket.gethostname(),
+        "node_id": ray.get_runtime_context().get_node_id() if ray.is_initialized() else "",
         "pid": os.getpid(),
     }
 
@@ -181,7 +187,8 @@ def run_fleet(
         task = ray.remote(num_cpus=1, max_retries=RETRIES)(estimate_one)
         pending: dict[Any, tuple[Path, str]] = {}
         results: dict[str, LogResult] = {}
-        for log, name, argv, error in jobs:
+        # the largest logs first: the fleet ends sooner than when a long one starts last
+        for log, name, argv, error in sorted(jobs, key=lambda job: -_size(job[0])):
             if argv is None:
                 results[name] = LogResult(str(log), "failed", error=error)
                 continue
@@ -212,6 +219,15 @@ def run_fleet(
     return rows
 
 
+def _size(log: Path) -> int:
+    """Bytes of a log file or rosbag2 folder (0 for what is neither)."""
+    if log.is_file():
+        return log.stat().st_size
+    if log.is_dir():
+        return sum(p.stat().st_size for p in log.rglob("*") if p.is_file())
+    return 0
+
+
 def _row(log: Path, folder: Path, outcome: dict[str, Any]) -> LogResult:
     """A finished task's row: from its summary.json when it wrote one."""
     result = LogResult(
@@ -220,6 +236,7 @@ def _row(log: Path, folder: Path, outcome: dict[str, Any]) -> LogResult:
         error=outcome["error"] if outcome["code"] != 0 else "",
         wall_s=outcome["wall_s"],
         node=outcome["node"],
+        node_id=outcome.get("node_id", ""),
         out=str(folder) if outcome["code"] == 0 else "",
     )
     if outcome["code"] != 0 and not result.error:
@@ -266,6 +283,21 @@ def table(rows: Sequence[LogResult]) -> str:
 
 def _num(value: float | None, width: int, digits: int) -> str:
     return f"{value:{width}.{digits}f}" if value is not None else f"{'—':>{width}s}"
+
+
+def task_processes() -> list[int]:
+    """PIDs of this machine's Ray workers inside a fleet task (Ray titles a worker by the task
+    it runs: ray::estimate_one), read from /proc; [] where there is no /proc."""
+    pids = []
+    proc = Path("/proc")
+    for entry in proc.iterdir() if proc.is_dir() else []:
+        if entry.name.isdigit():
+            try:
+                if (entry / "cmdline").read_bytes().startswith(b"ray::estimate_one"):
+                    pids.append(int(entry.name))
+            except OSError:
+                continue
+    return pids
 
 
 def print_progress(result: LogResult, done: int, total: int) -> None:

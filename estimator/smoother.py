@@ -19,6 +19,7 @@ also avoids GTSAM's CustomFactor path, which copies the whole Values on every ca
 from __future__ import annotations
 
 import copy
+import os
 import queue
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -41,7 +42,8 @@ from estimator.problem import (
 from estimator.rotations import quat_errors, quat_log_between
 from physics.softness import scale as scale_softness
 
-THREADS = 2
+# MuJoCo threads of one estimate (a fleet task runs on its one CPU: 1)
+THREADS = int(os.environ.get("PHYSFUSE_THREADS") or 2)
 LAMBDA_MIN = 1e-9  # Levenberg–Marquardt's least damping, and its first
 LAMBDA_REJECTED = 1e-5  # the least damping after a rejected step
 MARGINAL_REGULARIZER = 1e-14  # on the unit diagonal of S H S (`BandedSystem.marginal_std`)

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from estimator.errors import ConfigError
-from estimator.fleet import expand_logs, output_names
+from estimator.fleet import expand_logs, output_names, task_processes
 from estimator.truth import read_state_topics
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -96,20 +96,6 @@ def test_a_fleet_estimates_each_log_and_reports_a_bad_one_in_one_line(tmp_path):
     assert "1 of 2 logs estimated" in done.stdout
 
 
-def _workers_running_the_task() -> list[int]:
-    """PIDs of Ray workers inside an `estimate_one` task (Ray titles them ray::estimate_one)."""
-    pids = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                command = (entry / "cmdline").read_bytes()
-            except OSError:
-                continue
-            if command.startswith(b"ray::estimate_one"):
-                pids.append(int(entry.name))
-    return pids
-
-
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="finds the Ray worker through /proc")
 def test_a_task_whose_worker_is_killed_runs_again_with_the_same_result(tmp_path):
     """The log is a FIFO, so the task waits on it; its worker is SIGKILLed there; Ray runs
@@ -139,9 +125,9 @@ def test_a_task_whose_worker_is_killed_runs_again_with_the_same_result(tmp_path)
         text=True,
     )
     try:
-        killed = _wait_for(_workers_running_the_task)
+        killed = _wait_for(task_processes)
         os.kill(killed[0], signal.SIGKILL)
-        retried = _wait_for(lambda: [p for p in _workers_running_the_task() if p not in killed])
+        retried = _wait_for(lambda: [p for p in task_processes() if p not in killed])
         assert retried
         writer = threading.Thread(
             target=lambda: fifo.write_bytes(

@@ -1,0 +1,205 @@
+"""Many logs on Ray (estimator/fleet.py): 1 against 2 local workers, a two-node cluster on this
+machine, and a worker killed mid-task.
+
+    .venv/bin/python benchmarks/scale.py --out out/scale [--method kinematic]
+
+1. The 8 bundled recordings (recordings/*.mcap, configs/<name>.toml) through `physfuse
+   estimate recordings/ --config configs/ --workers N` for N = 1 and 2, in one run: wall
+   time of each fleet and their ratio.
+2. A two-node Ray cluster on loopback (`ray.cluster_utils.Cluster`: a head and a second
+   node, one CPU each) running the same fleet through `--ray-address`: the Ray node that
+   ran each log (fleet.json's node_id).
+3. A worker SIGKILLed mid-estimate (ray::estimate_one, after `--kill-after` s): its task is
+   retried; the retried estimate against a single process's estimate of the same log.
+
+Prints a table and writes OUT/scale.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from estimator.fleet import task_processes  # noqa: E402
+
+PHYSFUSE = [sys.executable, "-m", "estimator.cli"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--out", type=Path, default=Path("out/scale"))
+    parser.add_argument(
+        "--method",
+        default="kinematic",
+        help="estimate method of every log (kinematic: the fleet's scaling, not the "
+        "physics' speed, is what is measured; physics takes ≈10 min on 1 worker)",
+    )
+    parser.add_argument("--kill-log", default="humanoid_push", help="the log whose task is killed")
+    parser.add_argument("--kill-after", type=float, default=3.0, help="s into its estimate")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    results: dict[str, Any] = {
+        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+        "python": platform.python_version(),
+        "method": args.method,
+    }
+    logs = sorted((ROOT / "recordings").glob("*.mcap"))
+    results["logs"] = [p.name for p in logs]
+    walls = {}
+    for workers in (1, 2):
+        wall, rows = _fleet(
+            ["--workers", str(workers)], args.out / f"workers{workers}", args.method
+        )
+        walls[workers] = wall
+        results[f"workers_{workers}"] = {"wall_s": wall, "ok": _ok(rows), "rows": rows}
+    results["speedup_2_over_1"] = walls[1] / walls[2]
+    results["cluster"] = _two_nodes(args.out / "cluster", args.method)
+    results["killed_worker"] = _killed(args.out / "killed", args.kill_log, args.kill_after)
+    (args.out / "scale.json").write_text(json.dumps(results, indent=2) + "\n")
+    _print(results)
+    print(f"wrote {args.out / 'scale.json'}")
+    return 0
+
+
+def _fleet(where: list[str], out: Path, method: str, **popen: Any) -> tuple[float, list]:
+    """`physfuse estimate recordings/ --config configs/` on `where`: wall time and rows."""
+    start = time.perf_counter()
+    done = subprocess.run(
+        [
+            *(*PHYSFUSE, "estimate", "recordings/", "--config", "configs/", "--out", str(out)),
+            *(*where, "--method", method, "--quiet"),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        **popen,
+    )
+    wall = time.perf_counter() - start
+    if done.returncode not in (0, 1):
+        raise SystemExit(f"fleet {where} failed ({done.returncode}): {done.stderr[-2000:]}")
+    return wall, json.loads((out / "fleet.json").read_text())
+
+
+def _ok(rows: list[dict]) -> int:
+    return sum(r["status"] == "ok" for r in rows)
+
+
+def _two_nodes(out: Path, method: str) -> dict[str, Any]:
+    """The fleet on a head and a second node started on this machine, one CPU each."""
+    from ray.cluster_utils import Cluster
+
+    cluster = Cluster(
+        initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False}
+    )
+    try:
+        cluster.add_node(num_cpus=1)
+        cluster.wait_for_nodes()
+        wall, rows = _fleet(["--ray-address", cluster.address], out, method)
+        nodes = {r["node_id"] for r in rows if r["node_id"]}
+        return {
+            "address": cluster.address,
+            "nodes_in_cluster": len(cluster.list_all_nodes()),
+            "wall_s": wall,
+            "ok": _ok(rows),
+            "logs_per_node": {n[:12]: sum(r["node_id"] == n for r in rows) for n in sorted(nodes)},
+        }
+    finally:
+        cluster.shutdown()
+
+
+def _killed(out: Path, log: str, after_s: float) -> dict[str, Any]:
+    """One log on 1 worker; its ray::estimate_one process SIGKILLed `after_s` into the task;
+    the retried estimate against a single process's (both on one MuJoCo thread)."""
+    recording = ROOT / "recordings" / f"{log}.mcap"
+    config = ROOT / "configs" / f"{log}.toml"
+    env = {**os.environ, "PHYSFUSE_THREADS": "1"}
+    command = [*PHYSFUSE, "estimate", str(recording), "--config", str(config), "--quiet"]
+    fleet = subprocess.Popen(
+        [*command, "--out", str(out), "--workers", "1"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    victim = _wait_for(task_processes)
+    time.sleep(after_s)
+    os.kill(victim[0], signal.SIGKILL)
+    killed_at = time.perf_counter()
+    retried = _wait_for(lambda: [p for p in task_processes() if p not in victim])
+    stdout, stderr = fleet.communicate(timeout=1800)
+    single = out.parent / "killed_single"
+    done = subprocess.run(
+        [*command, "--out", str(single)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    from estimator.truth import read_state_topics
+
+    a = read_state_topics(out / log / "estimate.mcap", prefix="/estimate")
+    b = read_state_topics(single / "estimate.mcap", prefix="/estimate")
+    joints = float(np.max(np.abs(a.joints.values - b.joints.values)))
+    poses = [
+        float(np.max(np.abs(a.odometry[body].values[:, :7] - b.odometry[body].values[:, :7])))
+        for body in a.odometry
+    ]
+    rows = json.loads((out / "fleet.json").read_text())
+    return {
+        "log": log,
+        "killed_pid": victim[0],
+        "retried_pid": retried[0],
+        "retried_after_s": time.perf_counter() - killed_at,
+        "fleet_status": fleet.returncode,
+        "row_status": rows[0]["status"],
+        "single_status": done.returncode,
+        "max_abs_diff_joints": joints,
+        "max_abs_diff_poses": max(poses, default=0.0),
+        "raylet_said": [ln for ln in (stdout + stderr).splitlines() if "retried" in ln][:1],
+    }
+
+
+def _wait_for(find: Any, timeout_s: float = 300.0) -> list[int]:
+    start = time.monotonic()
+    while time.monotonic() - start < timeout_s:
+        found = find()
+        if found:
+            return found
+        time.sleep(0.1)
+    raise SystemExit(f"no Ray task worker in {timeout_s} s")
+
+
+def _print(r: dict[str, Any]) -> None:
+    print(f"machine: {r['machine']}, Python {r['python']}; method {r['method']}")
+    print(f"{'fleet':34s} {'wall s':>8s} {'ok':>6s}")
+    for w in (1, 2):
+        f = r[f"workers_{w}"]
+        print(f"{f'8 recordings, {w} local worker(s)':34s} {f['wall_s']:8.1f} {f['ok']:>4d}/8")
+    print(f"{'speedup, 2 workers over 1':34s} {r['speedup_2_over_1']:8.2f}")
+    c = r["cluster"]
+    print(f"{'two-node cluster (1 CPU each)':34s} {c['wall_s']:8.1f} {c['ok']:>4d}/8")
+    print(f"  logs per Ray node: {c['logs_per_node']}")
+    k = r["killed_worker"]
+    print(
+        f"killed worker: {k['log']} pid {k['killed_pid']} → retried on pid {k['retried_pid']} "
+        f"({k['retried_after_s']:.1f} s later); row {k['row_status']}; against one process: "
+        f"joints max |Δ| {k['max_abs_diff_joints']:.3g}, poses {k['max_abs_diff_poses']:.3g}"
+    )
+
+
+if __name__ == "__main__":
+    sys.exit(main())
