@@ -206,10 +206,14 @@ def _run_fleet(args: argparse.Namespace) -> int:
         f"the Ray cluster at {args.ray_address}" if args.ray_address else f"a local Ray, {workers}"
     )
     print(f"estimating {len(logs)} logs on {where}", file=sys.stderr)
-    progress = None if args.quiet else fleet.print_progress
-    rows = fleet.run_fleet(
-        logs, args.config, args.out, options, args.workers, args.ray_address, progress
-    )
+    progress = None if args.quiet else fleet.Progress()
+    try:
+        rows = fleet.run_fleet(
+            logs, args.config, args.out, options, args.workers, args.ray_address, progress
+        )
+    finally:
+        if progress is not None:
+            progress.close()
     print(fleet.table(rows))
     print(f"outputs: {args.out / 'fleet.csv'}, {args.out / 'fleet.json'}, {args.out}/<log name>/")
     return 0 if all(r.status == "ok" for r in rows) else 1

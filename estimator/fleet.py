@@ -300,7 +300,25 @@ def task_processes() -> list[int]:
     return pids
 
 
-def print_progress(result: LogResult, done: int, total: int) -> None:
-    """One line per finished log."""
-    what = "ok" if result.status == "ok" else f"failed: {result.error}"
-    print(f"[{done}/{total}] {result.log}: {what}", file=sys.stderr, flush=True)
+class Progress:
+    """The fleet's progress on stderr: one bar on a terminal, a line per finished log
+    otherwise; a failed log's line either way."""
+
+    def __init__(self) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=0, unit="log", disable=not sys.stderr.isatty())
+
+    def __call__(self, result: LogResult, done: int, total: int) -> None:
+        failed = f"{result.log}: failed: {result.error}"
+        if self.bar.disable:
+            what = "ok" if result.status == "ok" else failed
+            print(f"[{done}/{total}] {result.log}: {what}", file=sys.stderr, flush=True)
+            return
+        self.bar.total = total
+        if result.status != "ok":
+            self.bar.write(failed, file=sys.stderr)
+        self.bar.update(done - self.bar.n)
+
+    def close(self) -> None:
+        self.bar.close()
