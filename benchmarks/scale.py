@@ -9,7 +9,10 @@ machine, and a worker killed mid-task.
 2. A two-node Ray cluster on loopback (`ray.cluster_utils.Cluster`: a head and a second
    node, one CPU each) running the same fleet through `--ray-address`: the Ray node that
    ran each log (fleet.json's node_id).
-3. A worker SIGKILLed mid-estimate (ray::estimate_one, after `--kill-after` s): its task is
+3. A long simulated humanoid_push log (`--long-s`, default 60 s): one process, then `--chunk
+   --workers 1` and `--workers 2`: wall times, and the chunked estimate against the
+   single-process one in units of its reported σ.
+4. A worker SIGKILLed mid-estimate (ray::estimate_one, after `--kill-after` s): its task is
    retried; the retried estimate against a single process's estimate of the same log.
 
 Prints a table and writes OUT/scale.json.
@@ -47,6 +50,8 @@ def main(argv: list[str] | None = None) -> int:
         help="estimate method of every log (kinematic: the fleet's scaling, not the "
         "physics' speed, is what is measured; physics takes ≈10 min on 1 worker)",
     )
+    parser.add_argument("--long-s", type=float, default=60.0, help="the long log's length")
+    parser.add_argument("--chunk-s", type=float, default=15.0, help="its chunks' length")
     parser.add_argument("--kill-log", default="humanoid_push", help="the log whose task is killed")
     parser.add_argument("--kill-after", type=float, default=3.0, help="s into its estimate")
     args = parser.parse_args(argv)
@@ -67,6 +72,7 @@ def main(argv: list[str] | None = None) -> int:
         results[f"workers_{workers}"] = {"wall_s": wall, "ok": _ok(rows), "rows": rows}
     results["speedup_2_over_1"] = walls[1] / walls[2]
     results["cluster"] = _two_nodes(args.out / "cluster", args.method)
+    results["long_log"] = _long_log(args.out / "long", args.long_s, args.chunk_s)
     results["killed_worker"] = _killed(args.out / "killed", args.kill_log, args.kill_after)
     (args.out / "scale.json").write_text(json.dumps(results, indent=2) + "\n")
     _print(results)
@@ -118,6 +124,64 @@ def _two_nodes(out: Path, method: str) -> dict[str, Any]:
         }
     finally:
         cluster.shutdown()
+
+
+def _long_log(out: Path, seconds: float, chunk_s: float) -> dict[str, Any]:
+    """humanoid_push simulated for `seconds`, estimated (physics) by one process and in
+    chunks on 1 and 2 workers; the 2-worker estimate against the one process's."""
+    out.mkdir(parents=True, exist_ok=True)
+    log, config = out / "humanoid_push_long.mcap", out / "humanoid_push_long.toml"
+    if not log.exists():
+        done = subprocess.run(
+            [
+                *(*PHYSFUSE, "simulate", "humanoid_push", "--out", str(log)),
+                *("--duration", str(seconds), "--config-out", str(config), "--quiet"),
+            ],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+        )
+        if done.returncode:
+            raise SystemExit(f"simulate: {done.stderr[-2000:]}")
+    command = [*PHYSFUSE, "estimate", str(log), "--config", str(config), "--quiet"]
+    runs: dict[str, Any] = {}
+    for name, extra in (
+        ("one_process", []),
+        ("chunks_1_worker", ["--chunk", str(chunk_s), "--workers", "1"]),
+        ("chunks_2_workers", ["--chunk", str(chunk_s), "--workers", "2"]),
+    ):
+        start = time.perf_counter()
+        done = subprocess.run(
+            [*command, "--out", str(out / name), *extra], cwd=ROOT, capture_output=True, text=True
+        )
+        runs[name] = {"wall_s": time.perf_counter() - start, "status": done.returncode}
+        if done.returncode:
+            runs[name]["error"] = done.stderr[-500:]
+    from estimator.truth import read_state_topics
+
+    one = read_state_topics(out / "one_process" / "estimate.mcap", prefix="/estimate")
+    two = read_state_topics(out / "chunks_2_workers" / "estimate.mcap", prefix="/estimate")
+    body = next(iter(one.odometry))
+    a, b = one.odometry[body].values, two.odometry[body].values
+    sigma = np.sqrt(np.stack([a[:, 13], a[:, 17], a[:, 21]], axis=1))  # σ x, y, z
+    z = np.abs(a[:, :3] - b[:, :3]) / sigma
+    return {
+        "log_s": seconds,
+        "chunk_s": chunk_s,
+        "runs": runs,
+        "speedup_chunks_2_over_1": runs["chunks_1_worker"]["wall_s"]
+        / runs["chunks_2_workers"]["wall_s"],
+        "body": body,
+        "position_diff_over_sigma": {
+            "max": float(np.max(z)),
+            "p99": float(np.percentile(z, 99)),
+            "within_1_sigma": float(np.mean(z <= 1)),
+        },
+        "position_diff_max_mm": float(np.max(np.abs(a[:, :3] - b[:, :3])) * 1e3),
+        "joint_diff_max_deg": float(
+            np.degrees(np.max(np.abs(one.joints.values[:, 0::3] - two.joints.values[:, 0::3])))
+        ),
+    }
 
 
 def _killed(out: Path, log: str, after_s: float) -> dict[str, Any]:
@@ -196,6 +260,17 @@ def _print(r: dict[str, Any]) -> None:
     c = r["cluster"]
     print(f"{'two-node cluster (1 CPU each)':34s} {c['wall_s']:8.1f} {c['ok']:>4d}/8")
     print(f"  logs per Ray node: {c['logs_per_node']}")
+    g = r["long_log"]
+    for name, run in g["runs"].items():
+        label = f"{g['log_s']:.0f} s log, {name}"
+        print(f"{label:34s} {run['wall_s']:8.1f}")
+    print(f"{'speedup, chunks on 2 workers over 1':34s} {g['speedup_chunks_2_over_1']:8.2f}")
+    d = g["position_diff_over_sigma"]
+    print(
+        f"  chunked vs one process, {g['body']} position: max {d['max']:.2f} σ, p99 "
+        f"{d['p99']:.2f} σ, {d['within_1_sigma']:.1%} within 1 σ; max "
+        f"{g['position_diff_max_mm']:.4f} mm, joints {g['joint_diff_max_deg']:.2g}°"
+    )
     k = r["killed_worker"]
     print(
         f"killed worker: {k['log']} pid {k['killed_pid']} → retried on pid {k['retried_pid']} "

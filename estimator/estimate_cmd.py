@@ -26,7 +26,7 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
-from estimator import fleet
+from estimator import chunks, fleet
 from estimator.config import load_config
 from estimator.errors import ConfigError, LogError
 from estimator.estimate import Estimate
@@ -71,6 +71,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=Path("out/estimate"),
         help="output dir (several logs: DIR/<log name> each, DIR/fleet.csv and fleet.json)",
     )
+    parser.add_argument(
+        "--chunk",
+        type=float,
+        metavar="S",
+        help="one long log in chunks of S s solved in parallel as Ray tasks and joined (with "
+        "--workers or --ray-address; default a local Ray, a worker per core)",
+    )
+    parser.add_argument(
+        "--chunk-overlap",
+        type=float,
+        default=chunks.OVERLAP_S,
+        metavar="S",
+        help=f"log each chunk sees past its ends, s (default {chunks.OVERLAP_S:g})",
+    )
     fleet = parser.add_mutually_exclusive_group()
     fleet.add_argument(
         "--workers", type=int, help="several logs on a local Ray with N workers (default: cores)"
@@ -106,7 +120,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if len(args.log) > 1 or args.workers or args.ray_address or _names_many(args.log[0]):
+    parallel = args.workers or args.ray_address
+    if len(args.log) > 1 or _names_many(args.log[0]) or (parallel and args.chunk is None):
+        if args.chunk is not None:
+            raise ConfigError("--chunk cuts one log: give one log")
         return _run_fleet(args)
     args.log = args.log[0]
     config = load_config(args.config)
@@ -140,7 +157,19 @@ def run(args: argparse.Namespace) -> int:
             bar.total = total
             bar.update(done - bar.n)
 
-        est, summary = estimate(config, log.measurements, settings, progress)
+        if args.chunk is None:
+            est, summary = estimate(config, log.measurements, settings, progress)
+        else:
+            est, summary = chunks.estimate_chunked(
+                args.config,
+                log.measurements,
+                settings,
+                args.chunk,
+                args.chunk_overlap,
+                args.workers,
+                args.ray_address,
+                progress,
+            )
         summary = replace(summary, warnings=input_warnings + summary.warnings)
         bar.close()
         model = config.load_model()

@@ -19,7 +19,7 @@ import os
 import socket
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -120,7 +120,6 @@ def config_for(log: Path, config: Path) -> Path:
 def estimate_one(argv: list[str], transcript: str) -> dict[str, Any]:
     """Run `physfuse estimate` with argv in this process (a Ray worker, one CPU: MuJoCo on one
     thread), its output into `transcript`; its exit code, its error line and where it ran."""
-    os.environ.setdefault("PHYSFUSE_THREADS", "1")  # (read when the estimator is imported)
     import ray
 
     from estimator.cli import main
@@ -172,19 +171,8 @@ def run_fleet(
             jobs.append((log, name, [str(log), *where, "--quiet", *options], ""))
         except ConfigError as err:
             jobs.append((log, name, None, str(err)))
-    started_here = not ray.is_initialized()
-    if started_here:
-        kwargs: dict[str, Any] = {
-            "include_dashboard": False,
-            "log_to_driver": False,
-            "logging_level": logging.ERROR,  # Ray's start-up lines: the fleet prints its own
-        }
-        if address:
-            ray.init(address=address, **kwargs)
-        else:
-            ray.init(num_cpus=workers or os.cpu_count() or 1, **kwargs)
-    try:
-        task = ray.remote(num_cpus=1, max_retries=RETRIES)(estimate_one)
+    with ray_session(workers, address):
+        task = as_task(estimate_one)
         pending: dict[Any, tuple[Path, str]] = {}
         results: dict[str, LogResult] = {}
         # the largest logs first: the fleet ends sooner than when a long one starts last
@@ -211,12 +199,42 @@ def run_fleet(
             done += 1
             if progress:
                 progress(result, done, len(jobs))
-    finally:
-        if started_here:
-            ray.shutdown()
     rows = [results[name] for _, name, _, _ in jobs]
     write_summary(out, rows)
     return rows
+
+
+def as_task(function: Callable[..., Any]) -> Any:
+    """`function` as a Ray task of one CPU, MuJoCo on one thread there (PHYSFUSE_THREADS, read
+    when the estimator is imported), run again when its worker dies."""
+    import ray
+
+    env = {"env_vars": {"PHYSFUSE_THREADS": "1"}}
+    return ray.remote(num_cpus=1, max_retries=RETRIES, runtime_env=env)(function)
+
+
+@contextlib.contextmanager
+def ray_session(workers: int | None = None, address: str | None = None) -> Iterator[None]:
+    """Ray for the block: connected to the cluster at `address`, or a local Ray of `workers`
+    CPUs (default: the cores) started and stopped here; one already initialized is used."""
+    import ray
+
+    if ray.is_initialized():
+        yield
+        return
+    kwargs: dict[str, Any] = {
+        "include_dashboard": False,
+        "log_to_driver": False,
+        "logging_level": logging.ERROR,  # Ray's start-up lines: physfuse prints its own
+    }
+    if address:
+        ray.init(address=address, **kwargs)
+    else:
+        ray.init(num_cpus=workers or os.cpu_count() or 1, **kwargs)
+    try:
+        yield
+    finally:
+        ray.shutdown()
 
 
 def _size(log: Path) -> int:

@@ -82,9 +82,12 @@ def estimate(
     measurements: Mapping[str, Measurement],
     settings: Settings,
     progress: Callable[[int, int], None] | None = None,
+    knots: np.ndarray | None = None,
 ) -> tuple[Estimate, Summary]:
     """Estimate the whole log by `settings.method`; `progress(done, total)` is called after
-    each window (physics, kinematic) or stretch of the log (filters)."""
+    each window (physics, kinematic) or stretch of the log (filters). knots: the smoothers'
+    knot times (default: `knot_grid` over the measurements; a chunk of a longer log takes
+    its slice of the log's grid)."""
     # MuJoCo runs on THREADS threads; the small BLAS calls between its passes are fastest on
     # one (measured: a multithreaded OpenBLAS spin-waits 10× slower on a busy machine)
     with threadpool_limits(limits=1, user_api="blas"):
@@ -94,7 +97,7 @@ def estimate(
             from estimator.baselines.filters import filter_estimate  # (it builds on this module)
 
             return filter_estimate(config, measurements, settings, settings.method, progress)
-        return smooth(config, measurements, settings, progress)
+        return smooth(config, measurements, settings, progress, knots)
 
 
 def smooth(
@@ -102,12 +105,13 @@ def smooth(
     measurements: Mapping[str, Measurement],
     settings: Settings,
     progress: Callable[[int, int], None] | None,
+    knots: np.ndarray | None = None,
 ) -> tuple[Estimate, Summary]:
     start = time.perf_counter()
     compiled = model_with_sensors(config)
     model = compiled[0]
     h = settings.h or float(model.opt.timestep)
-    t_ns = knot_grid(measurements, h)
+    t_ns = knot_grid(measurements, h) if knots is None else knots
     T = len(t_ns)
     qpos0 = initial_trajectory(model, measurements, t_ns)
     W = max(8, round(settings.window_s / h))
@@ -120,18 +124,7 @@ def smooth(
     warnings: list[str] = []
     passes = dict.fromkeys(PASS_COUNTS, 0)
     kept_starts: list[str] = []
-    fitted: dict[str, float] = {}
-    if (
-        settings.fit_softness == "first_window"
-        and settings.method == "physics"
-        and not (
-            settings.sets_softness  # a config that gives the softness is taken as calibrated
-        )
-    ):
-        span = min(T, round(settings.fit_softness_s / h))
-        settings, fitted = _fit_softness(
-            config, measurements, settings, t_ns[:span], qpos0, compiled
-        )
+    settings, fitted = softness_fitted(config, measurements, settings, t_ns, qpos0, compiled)
     # The sweep: window i solves keys [s, e) with the marginal prior of the knots before s,
     # keeps [s, s + a) and hands keys s + a … on to the next window (with its past
     # marginalized onto them): its last `overlap` knots only look ahead for the kept ones.
@@ -229,6 +222,32 @@ class _Joined:
 
     start: int
     prior: MarginalPrior | None
+
+
+def softness_fitted(
+    config: Config,
+    measurements: Mapping[str, Measurement],
+    settings: Settings,
+    t_ns: np.ndarray,
+    qpos0: np.ndarray | None = None,
+    compiled: tuple[mujoco.MjModel, dict[str, list[str]]] | None = None,
+) -> tuple[Settings, dict[str, float]]:
+    """The settings every window of a physics estimate on the knots t_ns takes, and the fit
+    (empty without one): with fit_softness = "first_window" and a config that does not give
+    the softness (one that does is taken as calibrated), `_fit_softness` on the log's first
+    fit_softness_s. qpos0: the initial trajectory on t_ns (default: from the measurements)."""
+    if (
+        settings.fit_softness != "first_window"
+        or settings.method != "physics"
+        or settings.sets_softness
+    ):
+        return settings, {}
+    compiled = compiled or model_with_sensors(config)
+    h = settings.h or float(compiled[0].opt.timestep)
+    span = min(len(t_ns), round(settings.fit_softness_s / h))
+    if qpos0 is None:
+        qpos0 = initial_trajectory(compiled[0], measurements, t_ns[:span])
+    return _fit_softness(config, measurements, settings, t_ns[:span], qpos0, compiled)
 
 
 def _fit_softness(

@@ -170,3 +170,24 @@ def _wait_for(find, timeout_s: float = 120.0):
             return found
         time.sleep(0.2)
     raise AssertionError(f"nothing found in {timeout_s} s")
+
+
+def test_a_log_in_chunks_on_two_workers_is_the_one_process_estimate_within_its_sigma(tmp_path):
+    """humanoid_push in chunks of 2 s seen 1 s past each end, on 2 workers: the same knots
+    as one process, and a torso position within its reported σ of one process's at every
+    knot (the joins included)."""
+    base = ["estimate", "recordings/humanoid_push.mcap", "--config", "configs/humanoid_push.toml"]
+    one, chunked = tmp_path / "one", tmp_path / "chunked"
+    for out, extra in (
+        (one, []),
+        (chunked, ["--chunk", "2", "--chunk-overlap", "1", "--workers", "2"]),
+    ):
+        done = _run([*base, "--out", str(out), "--method", "kinematic", "--quiet", *extra])
+        assert done.returncode == 0, done.stderr
+    a = read_state_topics(one / "estimate.mcap", prefix="/estimate").odometry["torso"]
+    b = read_state_topics(chunked / "estimate.mcap", prefix="/estimate").odometry["torso"]
+    np.testing.assert_array_equal(a.t_ns, b.t_ns)
+    sigma = np.sqrt(a.values[:, [13, 17, 21]])
+    assert np.all(np.abs(a.values[:, :3] - b.values[:, :3]) < sigma)
+    summary = json.loads((chunked / "summary.json").read_text())
+    assert summary["knots"] == len(a.t_ns) and summary["windows"] == 2

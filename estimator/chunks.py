@@ -1,0 +1,140 @@
+"""One long log across Ray workers: `physfuse estimate LOG --chunk S [--workers N]`.
+
+The log's knot grid is cut into chunks of S seconds; each chunk is estimated as a Ray task
+on its slice of the grid widened by `overlap` seconds on both sides (the measurements there
+too), and the chunks are joined by keeping each one's own knots: at a join the estimate
+comes from a chunk that has seen `overlap` seconds of log past it, where the influence of
+the chunk's edge has died out. The physics' contact softness is fitted once, on the log's
+start (`run.softness_fitted`), and every chunk takes it.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from estimator.config import load_config
+from estimator.errors import ConfigError
+from estimator.estimate import Estimate
+from estimator.fleet import as_task, ray_session
+from estimator.logs import Measurement
+from estimator.problem import knot_grid
+from estimator.run import Summary, estimate, largest_residuals, samples_within, softness_fitted
+from estimator.settings import Settings
+
+OVERLAP_S = 2.0  # of log on each side of a chunk that its estimate sees and the join drops
+
+
+def estimate_chunked(
+    config_path: Path,
+    measurements: Mapping[str, Measurement],
+    settings: Settings,
+    chunk_s: float,
+    overlap_s: float = OVERLAP_S,
+    workers: int | None = None,
+    address: str | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[Estimate, Summary]:
+    """The log's estimate from chunks of `chunk_s` solved as Ray tasks and joined."""
+    import ray
+
+    start = time.perf_counter()
+    if chunk_s <= 0 or overlap_s < 0:
+        raise ConfigError(f"--chunk {chunk_s:g} s, overlap {overlap_s:g} s: expected > 0, ≥ 0")
+    config = load_config(config_path)
+    h = settings.h or float(config.load_model().opt.timestep)
+    t_ns = knot_grid(measurements, h)
+    knots, n, margin = len(t_ns), max(8, round(chunk_s / h)), round(overlap_s / h)
+    settings, fitted = softness_fitted(config, measurements, settings, t_ns)
+    cuts = [(a, min(a + n, knots)) for a in range(0, knots, n)]
+    with ray_session(workers, address):
+        shared = ray.put(dict(measurements))
+        task = as_task(estimate_chunk)
+        refs = []
+        for a, b in cuts:
+            lo, hi = max(0, a - margin), min(knots, b + margin)
+            refs.append(task.remote(str(config_path), shared, settings, t_ns[lo:hi]))
+        parts: list[tuple[Estimate, Summary, slice]] = []
+        for i, ((a, b), ref) in enumerate(zip(cuts, refs, strict=True)):
+            est, summary = ray.get(ref)
+            lo = max(0, a - margin)
+            parts.append((est, summary, slice(a - lo, b - lo)))
+            if progress:
+                progress(i + 1, len(cuts))
+    est = join([(e, kept) for e, _, kept in parts])
+    summaries = [s for _, s, _ in parts]
+    offsets = [a for a, _ in cuts]
+    summary = Summary(
+        duration_s=(est.t_ns[-1] - est.t_ns[0]) / 1e9,
+        knots=est.T,
+        h=est.h,
+        windows=sum(s.windows for s in summaries),
+        iterations=[i for s in summaries for i in s.iterations],
+        converged=[c for s in summaries for c in s.converged],
+        cost_by_type=est.cost_by_type,
+        largest_residuals=largest_residuals(est),
+        wall_time_s=time.perf_counter() - start,
+        warnings=[f"chunk {i + 1}: {w}" for i, s in enumerate(summaries) for w in s.warnings],
+        linearizations=sum(s.linearizations for s in summaries),
+        evaluations=sum(s.evaluations for s in summaries),
+        knots_linearized=sum(s.knots_linearized for s in summaries),
+        knots_evaluated=sum(s.knots_evaluated for s in summaries),
+        model_error_mean={
+            k: float(np.mean([s.model_error_mean[k] for s in summaries]))
+            for k in summaries[0].model_error_mean
+        },
+        kept_starts=[k for s in summaries for k in s.kept_starts],
+        softness_fit=fitted,
+        window_starts=sorted(
+            {
+                a + w - max(0, a - margin)
+                for a, s in zip(offsets, summaries, strict=True)
+                for w in s.window_starts
+            }
+        ),
+    )
+    return est, summary
+
+
+def estimate_chunk(
+    config_path: str, measurements: dict[str, Measurement], settings: Settings, knots: Any
+) -> tuple[Estimate, Summary]:
+    """One chunk, in a Ray worker: the estimate on `knots` from the measurements there."""
+    config = load_config(config_path)
+    window = {k: samples_within(m, int(knots[0]), int(knots[-1])) for k, m in measurements.items()}
+    return estimate(config, window, settings, knots=np.asarray(knots))
+
+
+def join(parts: list[tuple[Estimate, slice]]) -> Estimate:
+    """One estimate from each part's `kept` knots, in order; costs summed over the parts
+    (each over its own span, overlaps included)."""
+
+    def cat(arrays: list[np.ndarray]) -> np.ndarray:
+        return np.concatenate([x[kept] for x, (_, kept) in zip(arrays, parts, strict=True)])
+
+    ests = [e for e, _ in parts]
+    first = parts[0][0]
+    costs: dict[str, float] = {}
+    for e, _ in parts:
+        for k, v in e.cost_by_type.items():
+            costs[k] = costs.get(k, 0.0) + v
+    return replace(
+        first,
+        t_ns=cat([e.t_ns for e in ests]),
+        qpos=cat([e.qpos for e in ests]),
+        qvel=cat([e.qvel for e in ests]),
+        qacc=cat([e.qacc for e in ests]),
+        qfrc_inverse=cat([e.qfrc_inverse for e in ests]),
+        qfrc_known=cat([e.qfrc_known for e in ests]),
+        qpos_std=cat([e.qpos_std for e in ests]),
+        constraints=tuple(c for e, kept in parts for c in e.constraints[kept]),
+        imu_bias={k: cat([e.imu_bias[k] for e in ests]) for k in first.imu_bias},
+        model_error={k: cat([e.model_error[k] for e in ests]) for k in first.model_error},
+        residuals={k: cat([e.residuals[k] for e in ests]) for k in first.residuals},
+        cost_by_type=costs,
+    )
