@@ -16,6 +16,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 import rerun as rr
@@ -66,19 +67,28 @@ def writing(name: str | None) -> Phase:
     return reached
 
 
-def run_until(argv: list[str], out: Path, phase: Phase, sig: int) -> tuple[int, str, int]:
+def run_until(
+    argv: list[str], out: Path, phase: Phase, sig: int, snapshot: Callable[[], Any] = lambda: None
+) -> tuple[int, str, int, Any]:
     """Start a run, send `sig` once it reaches `phase` (sent while the run is stopped, so
-    that it lands there): (exit status, stderr, process id)."""
-    proc = start(argv)
-    deadline = time.monotonic() + 60
-    while proc.poll() is None and not phase(out, proc.pid) and time.monotonic() < deadline:
-        time.sleep(0.002)
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGSTOP)
-        proc.send_signal(sig)
-        proc.send_signal(signal.SIGCONT)
-    _, err = proc.communicate(timeout=60)
-    return proc.returncode, err, proc.pid
+    that it lands there): (exit status, stderr, process id, `snapshot()` taken just before
+    that run started). A run that ends before this process sees it reach the phase (a busy
+    machine: it polls every 2 ms) is started again, up to 5 times."""
+    for _ in range(5):
+        before = snapshot()
+        proc = start(argv)
+        deadline = time.monotonic() + 60
+        while proc.poll() is None and not phase(out, proc.pid) and time.monotonic() < deadline:
+            time.sleep(0.002)
+        sent = proc.poll() is None
+        if sent:
+            proc.send_signal(signal.SIGSTOP)
+            proc.send_signal(sig)
+            proc.send_signal(signal.SIGCONT)
+        _, err = proc.communicate(timeout=60)
+        if sent:
+            break
+    return proc.returncode, err, proc.pid, before
 
 
 def read_set(out: Path) -> str | None:
@@ -112,7 +122,9 @@ def test_a_killed_run_leaves_the_previous_set_or_the_new_one(tmp_path, capsys):
     # nearer the swap (right after the summary, the last file): there the new set may be in
     reading, mcap = writing(None), writing("estimate.mcap")
     for phase in (reading, mcap, writing("estimate.rrd"), writing("summary.json")):
-        code, err, _ = run_until(estimate_argv(out), out, phase, signal.SIGKILL)
+        code, err, _, previous = run_until(
+            estimate_argv(out), out, phase, signal.SIGKILL, lambda: read_set(out)
+        )
         assert code == -signal.SIGKILL, (code, err)
         now = read_set(out)  # complete, and from one run: raises otherwise
         assert now == previous or (phase not in (reading, mcap) and now is not None)
@@ -121,7 +133,9 @@ def test_a_killed_run_leaves_the_previous_set_or_the_new_one(tmp_path, capsys):
     assert temporary(out), "a killed run leaves its temporary folder (removed by the next)"
 
     # Ctrl-C while writing: exit 130, one line, its temporary folder removed
-    code, err, pid = run_until(estimate_argv(out), out, writing("estimate.mcap"), signal.SIGINT)
+    code, err, pid, previous = run_until(
+        estimate_argv(out), out, writing("estimate.mcap"), signal.SIGINT, lambda: read_set(out)
+    )
     assert code == 130 and err == "physfuse estimate: interrupted\n", (code, err)
     assert read_set(out) == previous and not temporary(out, pid)
 
@@ -330,12 +344,12 @@ def test_a_killed_simulate_leaves_the_previous_log(tmp_path):
     log = tmp_path / "x.mcap"
     argv = ["simulate", "single_joint", "--duration", "0.2", "--quiet", "--out", str(log)]
     assert main(argv) == 0
-    before = log.read_bytes()
-    code, _, _ = run_until(
+    code, _, _, before = run_until(
         [*argv[:3], "1.0", *argv[4:], "--seed", "1"],
         log,
         lambda p, pid: bool(list(p.parent.glob(f".x.mcap.tmp-{pid}-*"))),
         signal.SIGKILL,
+        log.read_bytes,
     )
     assert code == -signal.SIGKILL
     assert log.read_bytes() == before
