@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from estimator.config import load_config
-from estimator.errors import ConfigError
+from estimator.errors import ConfigError, PhysfuseError
 from estimator.estimate import Estimate
 from estimator.fleet import as_task, ray_session
 from estimator.logs import Measurement
@@ -28,6 +28,7 @@ from estimator.run import Summary, estimate, largest_residuals, samples_within, 
 from estimator.settings import Settings
 
 OVERLAP_S = 2.0  # of log on each side of a chunk that its estimate sees and the join drops
+SMOOTHERS = ("physics", "kinematic")  # the methods on a knot grid a chunk can be given
 
 
 def estimate_chunked(
@@ -44,8 +45,7 @@ def estimate_chunked(
     import ray
 
     start = time.perf_counter()
-    if chunk_s <= 0 or overlap_s < 0:
-        raise ConfigError(f"--chunk {chunk_s:g} s, overlap {overlap_s:g} s: expected > 0, ≥ 0")
+    check(settings, chunk_s, overlap_s)
     config = load_config(config_path)
     h = settings.h or float(config.load_model().opt.timestep)
     t_ns = knot_grid(measurements, h)
@@ -61,7 +61,13 @@ def estimate_chunked(
             refs.append(task.remote(str(config_path), shared, settings, t_ns[lo:hi]))
         parts: list[tuple[Estimate, Summary, slice]] = []
         for i, ((a, b), ref) in enumerate(zip(cuts, refs, strict=True)):
-            est, summary = ray.get(ref)
+            try:
+                est, summary = ray.get(ref)
+            except ray.exceptions.RayError as err:  # the chunk's error, or its workers died
+                cause = getattr(err, "cause", None) or err
+                line = (str(cause).strip().splitlines() or [type(cause).__name__])[-1]
+                span = f"{(t_ns[a] - t_ns[0]) / 1e9:.3f}–{(t_ns[b - 1] - t_ns[0]) / 1e9:.3f} s"
+                raise PhysfuseError(f"chunk {i + 1} ({span} of the log): {line}") from None
             lo = max(0, a - margin)
             parts.append((est, summary, slice(a - lo, b - lo)))
             if progress:
@@ -92,13 +98,26 @@ def estimate_chunked(
         softness_fit=fitted,
         window_starts=sorted(
             {
-                a + w - max(0, a - margin)
+                max(0, a - margin) + w
                 for a, s in zip(offsets, summaries, strict=True)
                 for w in s.window_starts
             }
         ),
     )
     return est, summary
+
+
+def check(settings: Settings, chunk_s: float, overlap_s: float) -> None:
+    """Raises ConfigError naming what --chunk cannot take."""
+    if chunk_s <= 0 or overlap_s < 0:
+        raise ConfigError(
+            f"--chunk {chunk_s:g}, --chunk-overlap {overlap_s:g}: expected s > 0 and s ≥ 0"
+        )
+    if settings.method not in SMOOTHERS:
+        raise ConfigError(
+            f"--chunk cuts the smoothers' knot grid ({', '.join(SMOOTHERS)}); --method "
+            f"{settings.method} estimates a log in one pass: leave --chunk out"
+        )
 
 
 def estimate_chunk(

@@ -137,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
     }
     settings = replace(settings, **{k: v for k, v in overrides.items() if v is not None})
     check_for_estimate(config, settings)  # the model and settings, before the log is read
+    if args.chunk is not None:
+        chunks.check(settings, args.chunk, args.chunk_overlap)
     out: Path = args.out
     run_id = str(uuid.uuid4())  # in summary.json, estimate.mcap and estimate.rrd: one run's set
     # --out checked and locked before the log is read; written whole when the run completes

@@ -191,3 +191,16 @@ def test_a_log_in_chunks_on_two_workers_is_the_one_process_estimate_within_its_s
     assert np.all(np.abs(a.values[:, :3] - b.values[:, :3]) < sigma)
     summary = json.loads((chunked / "summary.json").read_text())
     assert summary["knots"] == len(a.t_ns) and summary["windows"] == 2
+
+
+def test_chunks_refuse_what_they_cannot_cut_before_the_log_is_read(tmp_path):
+    """--chunk with a filter or the raw method, or a chunk of 0 s: one line, nothing written."""
+    base = ["estimate", "recordings/single_joint.mcap", "--config", "configs/single_joint.toml"]
+    for extra, said in (
+        (["--chunk", "1", "--method", "raw"], "--method raw estimates a log in one pass"),
+        (["--chunk", "0"], "--chunk 0, --chunk-overlap 2: expected s > 0 and s ≥ 0"),
+    ):
+        done = _run([*base, "--out", str(tmp_path / "out"), *extra])
+        assert done.returncode == 2
+        assert done.stderr.count("\n") == 1 and said in done.stderr, done.stderr
+        assert not (tmp_path / "out").exists()
