@@ -39,12 +39,15 @@ def estimate_argv(out: Path, log: Path = LOG, *extra: str) -> list[str]:
 
 
 def start(argv: list[str], **kwargs) -> subprocess.Popen:
+    """A physfuse run in a child process, with Ctrl-C's default disposition: started from a
+    shell's background job (`make test &`) it would inherit SIGINT ignored."""
     return subprocess.Popen(
         [sys.executable, "-m", "estimator.cli", *argv],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
         **kwargs,
     )
 
