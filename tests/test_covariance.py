@@ -42,23 +42,30 @@ def test_rows_whose_residuals_exceed_their_sigma_are_scaled_to_them():
     assert rms == pytest.approx(3.0, rel=0.1)
 
 
-def test_considered_softness_predicts_how_far_a_re_solved_estimate_moves():
-    """The linear sensitivity S_κ = −H⁻¹ Jᵀ ∂r/∂κ of the quadruped's height to its contacts'
-    κ against re-solving the window with κ × 1.02, as RMS over the window: within 15% (the
-    base sits on its feet's contacts, so a stiffer or softer contact moves it)."""
-    config = load_config(ROOT / "configs" / "quadruped_trot.toml")
-    log = read_log(ROOT / "recordings" / "quadruped_trot.mcap", config)
-    t_ns = knot_grid(log.measurements, 0.005)[100:180]
+def _solved_and_moved(robot: str, h: float, knots: slice, step: float):
+    """A window of a bundled recording (its knots of step h), solved tightly; and re-solved
+    from there with every contact's κ × (1 + step)."""
+    config = load_config(ROOT / "configs" / f"{robot}.toml")
+    log = read_log(ROOT / "recordings" / f"{robot}.mcap", config)
+    t_ns = knot_grid(log.measurements, h)[knots]
     settings = Settings(tolerance=1e-10, max_iterations=60, model_mass_std=0.0)
     problem = build_problem(config, log.measurements, settings, t_ns)
     qpos = initial_trajectory(problem.model, log.measurements, t_ns)
     solved = solve_window(problem, qpos, np.zeros((problem.T, problem.nb)), covariance=False)
-    step = 0.02
     model = copy.deepcopy(problem.model)
     smoother._scaled_timeconst(model, 1.0 + step)
     moved = solve_window(replace(problem, model=model), solved.qpos, solved.bias, covariance=False)
+    return problem, solved, moved
+
+
+def test_considered_softness_predicts_how_far_a_re_solved_estimate_moves():
+    """The linear sensitivity S_κ = −H⁻¹ Jᵀ ∂r/∂κ of the quadruped's height to its contacts'
+    κ against re-solving the window with κ × 1.02, as RMS over the window: within 15% (the
+    base sits on its feet's contacts, so a stiffer or softer contact moves it)."""
+    step = 0.02
+    problem, solved, moved = _solved_and_moved("quadruped_trot", 0.005, slice(100, 180), step)
     actual = np.sqrt(np.mean((moved.qpos[:, 2] - solved.qpos[:, 2]) ** 2))  # RMS over the window
-    only_kappa = replace(problem, settings=replace(settings, model_softness_std=step))
+    only_kappa = replace(problem, settings=replace(problem.settings, model_softness_std=step))
     variance = smoother.consider_variance(only_kappa, solved, ("softness_kappa",))
     predicted = np.sqrt(variance[:, 2])
     assert np.all(predicted == predicted[0])  # the window's RMS, at every knot
@@ -71,17 +78,8 @@ def test_a_force_sensor_predicted_through_the_contacts_enters_the_sensitivity():
     factor's rows (within a factor 1.5 of re-solving the window), where the physics rows
     alone predict a sixth of it — the wrist force/torque sensor, predicted through the
     fingers' contacts, is what the contact's softness moves most."""
-    config = load_config(ROOT / "configs" / "arm_box.toml")
-    log = read_log(ROOT / "recordings" / "arm_box.mcap", config)
-    t_ns = knot_grid(log.measurements, 0.002)[400:500]
-    settings = Settings(tolerance=1e-10, max_iterations=60, model_mass_std=0.0)
-    problem = build_problem(config, log.measurements, settings, t_ns)
-    qpos = initial_trajectory(problem.model, log.measurements, t_ns)
-    solved = solve_window(problem, qpos, np.zeros((problem.T, problem.nb)), covariance=False)
     step, box = 0.02, slice(7, 10)
-    model = copy.deepcopy(problem.model)
-    smoother._scaled_timeconst(model, 1.0 + step)
-    moved = solve_window(replace(problem, model=model), solved.qpos, solved.bias, covariance=False)
+    problem, solved, moved = _solved_and_moved("arm_box", 0.002, slice(400, 500), step)
     actual = np.sqrt(np.mean(np.sum((moved.qpos[:, box] - solved.qpos[:, box]) ** 2, axis=1)))
     at = smoother._rows_at(problem, problem.model, solved)
     system = solved.solved_system
