@@ -95,6 +95,7 @@ def estimate_chunked(
             for k in summaries[0].model_error_mean
         },
         kept_starts=[k for s in summaries for k in s.kept_starts],
+        starts_tried=[k for s in summaries for k in s.starts_tried],
         softness_fit=fitted,
         window_starts=sorted(
             {

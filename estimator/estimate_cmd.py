@@ -114,7 +114,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=CHOICES["init"],
         help="where each window's physics solve starts (default: config/best, from the "
         "kinematic smoother's solution and from the measurements, the lower cost kept; "
-        "measurements: one solve, about 2.4× faster)",
+        "best_across_gaps: both only where the measurements have a gap; measurements: one "
+        "solve)",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -364,13 +365,16 @@ def _stages(report: dict[str, Any]) -> str:
         return ""
     if settings.get("init") == "kinematic":
         return " (kinematic + physics from it)"
-    if settings.get("init") != "best":
+    if settings.get("init") not in ("best", "best_across_gaps"):
         return ""
-    kept = report.get("kept_starts", [])
+    kept, tried = report.get("kept_starts", []), report.get("starts_tried", [])
+    both = [k for k, t in zip(kept, tried, strict=True) if len(t) > 1]
+    if not both:
+        return " (physics from the measurements)"
     return (
-        " (kinematic + physics from it + physics from the measurements; the lower cost was "
-        f"the start from the kinematic solution in {kept.count('kinematic')} of {len(kept)} "
-        "window(s))"
+        f" (physics from the measurements; in {len(both)} of {len(tried)} window(s) also "
+        "kinematic + physics from it, whose solution had the lower cost in "
+        f"{both.count('kinematic')})"
     )
 
 

@@ -68,6 +68,8 @@ class Summary:
     model_error_mean: dict[str, float] = field(default_factory=dict)
     # per window, where the kept physics solution started: "kinematic" | "measurements"
     kept_starts: list[str] = field(default_factory=list)
+    # per window, the starts its physics was solved from (init = "best": both across a gap)
+    starts_tried: list[list[str]] = field(default_factory=list)
     # fit_softness: the factors on the model's own ε and κ the first window gave, their σ
     softness_fit: dict[str, float] = field(default_factory=dict)
     # the knot where each window's kept estimate begins (a join between windows: the next)
@@ -113,7 +115,8 @@ def smooth(
     h = settings.h or float(model.opt.timestep)
     t_ns = knot_grid(measurements, h) if knots is None else knots
     T = len(t_ns)
-    qpos0 = initial_trajectory(model, measurements, t_ns)
+    filled = np.zeros(T, dtype=bool)  # knots the measurements' start interpolates in a gap
+    qpos0 = initial_trajectory(model, measurements, t_ns, filled=filled)
     W = max(8, round(settings.window_s / h))
     overlap = min(W // 2, max(4, round(settings.overlap_s / h)))
     qpos = qpos0.copy()
@@ -124,6 +127,7 @@ def smooth(
     warnings: list[str] = []
     passes = dict.fromkeys(PASS_COUNTS, 0)
     kept_starts: list[str] = []
+    starts_tried: list[list[str]] = []
     settings, fitted = softness_fitted(config, measurements, settings, t_ns, qpos0, compiled)
     # The sweep: window i solves keys [s, e) with the marginal prior of the knots before s,
     # keeps [s, s + a) and hands keys s + a … on to the next window (with its past
@@ -134,6 +138,7 @@ def smooth(
     s, i = 0, 0
     window_starts = []
     history: list[_Joined] = []  # the last windows: where each starts, the prior it received
+    solved_until = 0  # the knots before come from a window's solution
     while True:
         window_starts.append(s)
         e = min(T, s + W)
@@ -154,7 +159,14 @@ def smooth(
         while len(history) > 1 and history[1].start <= reach:
             del history[0]
         starts_at = {"measurements": (init_q, init_b)}  # where the physics solve starts
-        if settings.init in ("kinematic", "best") and settings.method == "physics":
+        # "best_across_gaps": both starts only where the measurements' start is interpolated
+        # across a gap (an occlusion, a dropout; not on the knots the previous window solved)
+        fill = filled[s:e].copy()
+        fill[: max(0, solved_until - s)] = False
+        kinematic_start = settings.init in ("kinematic", "best") or (
+            settings.init == "best_across_gaps" and bool(fill.any())
+        )
+        if kinematic_start and settings.method == "physics":
             # (its bias dims are the physics problem's first: no model-error offset)
             first = build_problem(
                 config, window, replace(settings, method="kinematic"), t_ns[s:e], compiled
@@ -175,6 +187,7 @@ def smooth(
         # "best": the solution of lower cost; its covariance alone
         kept = min(solved, key=lambda name: solved[name].cost_final)
         kept_starts.append(kept)
+        starts_tried.append(list(solved))
         result = with_covariance(solved[kept], range(0, a), problem)
         # the windows before follow the keys this one moved (a backward pass, linearized)
         moved, now = shared, (result.qpos[:n_shared], result.bias[:n_shared])
@@ -193,6 +206,7 @@ def smooth(
         qpos[s + a : e] = result.qpos[a:]  # the next window starts from this one's solution
         bias[s + a : e] = result.bias[a:]
         prior = result.next_prior
+        solved_until = e
         warnings.extend(f"window {i + 1}: {w}" for w in result.warnings)
         iterations.append(sum(r.iterations for r in stages))  # every solve's count
         for r in stages:
@@ -212,7 +226,9 @@ def smooth(
     est, summary = finish(
         config, full, qpos, bias, std, start, iterations, converged, warnings, passes, kept_starts
     )
-    return est, replace(summary, softness_fit=fitted, window_starts=window_starts)
+    return est, replace(
+        summary, softness_fit=fitted, window_starts=window_starts, starts_tried=starts_tried
+    )
 
 
 @dataclass(frozen=True)
@@ -348,12 +364,18 @@ def samples_within(m: Measurement, t0_ns: int, t1_ns: int) -> Measurement:
 
 
 def initial_trajectory(
-    model: mujoco.MjModel, measurements: Mapping[str, Measurement], t_ns: np.ndarray
+    model: mujoco.MjModel,
+    measurements: Mapping[str, Measurement],
+    t_ns: np.ndarray,
+    filled: np.ndarray | None = None,
 ) -> np.ndarray:
     """(T, nq) q_k from mocap (poses, or markers fitted by Kabsch) and joint encoders.
 
     Knots without a measurement (a dropped first frame, occlusions) are interpolated between
     measured knots and held at the ends; unmeasured coordinates keep the model's home pose.
+    filled (T,): set True at the knots where a measured coordinate was interpolated across a
+    gap (an occlusion, a dropout), or held at an end for more than 2.5 of its stream's sample
+    periods (a stream that starts late, or stops early).
     """
     T = len(t_ns)
     home = model.qpos0.copy()
@@ -362,9 +384,11 @@ def initial_trajectory(
         home = model.key_qpos[key].copy()
     qpos = np.tile(home, (T, 1))
     measured = np.zeros((T, model.nq), dtype=bool)
+    held_ns = np.zeros(model.nq)  # the longest hold at an end that is no gap, by coordinate
     for m in measurements.values():
         if not len(m):
             continue
+        before = measured.any(axis=0)
         if m.kind in ("pose", "tf", "rigid_bodies"):
             values = interpolated_at_knots(m, t_ns)
             for e, name in enumerate(m.elements):
@@ -379,8 +403,27 @@ def initial_trajectory(
                 ok = np.isfinite(values[:, e, 0])
                 qpos[ok, adr] = values[ok, e, 0]
                 measured[ok, adr] = True
+        period = np.median(np.diff(m.t_ns)) if len(m) > 1 else 0.0
+        held_ns[measured.any(axis=0) & ~before] = 2.5 * period
     _fill_gaps(model, qpos, measured)
+    if filled is not None:
+        filled[:] = _gap_knots(measured, t_ns, held_ns)
     return qpos
+
+
+def _gap_knots(measured: np.ndarray, t_ns: np.ndarray, held_ns: np.ndarray) -> np.ndarray:
+    """(T,) knots where a measured coordinate (a column of measured (T, nq)) is not measured:
+    inside its measured span, or at an end held for longer than its held_ns."""
+    after_first = np.maximum.accumulate(measured, axis=0)
+    before_last = np.maximum.accumulate(measured[::-1], axis=0)[::-1]
+    gap = ~measured & after_first & before_last
+    for col in np.flatnonzero(measured.any(axis=0)):
+        k0, k1 = np.flatnonzero(measured[:, col])[[0, -1]]
+        if t_ns[k0] - t_ns[0] > held_ns[col]:
+            gap[:k0, col] = True
+        if t_ns[-1] - t_ns[k1] > held_ns[col]:
+            gap[k1 + 1 :, col] = True
+    return np.asarray(gap.any(axis=1))
 
 
 def _free_joint_of(model: mujoco.MjModel, body: int) -> int:

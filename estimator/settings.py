@@ -97,14 +97,19 @@ class Settings:
         "moved, through its marginalized past (0: none; memory grows with it)",
     )
     max_iterations: int = setting(
-        30, "Levenberg–Marquardt iterations per solve (a window has up to 3)", positive=True
+        30,
+        "Levenberg–Marquardt iterations per solve (a window has 1, or 3 with init = best "
+        "across a gap)",
+        positive=True,
     )
     init: str = setting(
         "best",
         "where each window's physics solve starts: measurements (interpolated to the knots) | "
         "kinematic (the kinematic smoother's solution of the window) | best (from both; the "
-        "solution of lower cost)",
-        choices=("measurements", "kinematic", "best"),
+        "solution of lower cost) | best_across_gaps (both only in a window where the "
+        "measurements' start has a gap, else the measurements: one solve where every "
+        "coordinate is measured)",
+        choices=("measurements", "kinematic", "best", "best_across_gaps"),
     )
     tolerance: float = setting(
         0.001, "stop when an iteration lowers the cost by less than this fraction"

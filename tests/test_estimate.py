@@ -14,7 +14,7 @@ from mcap_ros2.reader import read_ros2_messages
 
 from estimator.cli import main
 from estimator.config import load_config
-from estimator.logs import read_log
+from estimator.logs import Measurement, read_log
 from estimator.problem import (
     build_problem,
     knot_grid,
@@ -342,6 +342,69 @@ def test_init_best_keeps_the_lower_cost_of_both_starts(estimated, tmp_path):
         json.loads((tmp_path / init / "out" / "summary.json").read_text())["iterations"][0]
         for init in costs
     )
+
+
+def test_init_best_across_gaps_solves_once_where_every_coordinate_is_measured(estimated, tmp_path):
+    """init = "best_across_gaps": where the measurements' start has a gap (the torso's mocap
+    stops 0.5 s before the end of the `estimated` log) both starts, as "best"; on a log without
+    mocap dropouts one solve, from the measurements."""
+    out, log, config = estimated
+    argv = ["estimate", str(log), "--config", str(config), "--init", "best_across_gaps"]
+    assert main([*argv, "--out", str(tmp_path / "gap"), "--quiet"]) == 0
+    with_gap = json.loads((tmp_path / "gap" / "summary.json").read_text())
+    best = json.loads((out / "summary.json").read_text())
+    assert with_gap["starts_tried"] == best["starts_tried"] == [["kinematic", "measurements"]]
+    assert with_gap["cost_by_type"] == best["cost_by_type"]
+
+    log, config = tmp_path / "log.mcap", tmp_path / "log.toml"
+    simulated = ["simulate", "humanoid_push", "--seed", "3", "--duration", "1.5"]
+    argv = [*simulated, "--condition", "nominal", "--out", str(log), "--config-out", str(config)]
+    assert main([*argv, "--quiet"]) == 0
+    summaries = {}
+    for init in ("best_across_gaps", "measurements"):
+        argv = ["estimate", str(log), "--config", str(config), "--init", init]
+        assert main([*argv, "--out", str(tmp_path / init), "--quiet"]) == 0
+        summaries[init] = json.loads((tmp_path / init / "summary.json").read_text())
+    once, measurements = summaries["best_across_gaps"], summaries["measurements"]
+    assert once["starts_tried"] == [["measurements"]]
+    assert once["iterations"] == measurements["iterations"]
+    assert once["cost_by_type"] == measurements["cost_by_type"]
+
+
+def test_the_gaps_of_the_measurements_start():
+    """initial_trajectory's filled knots: a measured coordinate interpolated across a gap, or
+    held at an end for longer than 2.5 of its stream's sample periods."""
+    config = load_config(ROOT / "configs" / "humanoid_push.toml")
+    model = config.load_model()
+    measurements = dict(read_log(ROOT / "recordings" / "humanoid_push.mcap", config).measurements)
+    t_ns = knot_grid(measurements, model.opt.timestep)
+
+    def gaps() -> np.ndarray:
+        filled = np.zeros(len(t_ns), dtype=bool)
+        initial_trajectory(model, measurements, t_ns, filled=filled)
+        return filled
+
+    assert not gaps().any()  # every frame of the root's mocap: its start knot held, no gap
+    torso = measurements["mocap_torso"]
+
+    def kept(keep: np.ndarray) -> Measurement:
+        return replace(
+            torso,
+            t_ns=torso.t_ns[keep],
+            values=torso.values[keep],
+            log_time_ns=torso.log_time_ns[keep],
+        )
+
+    k0, k1 = 40, 90  # the torso's mocap lost between the knots k0 and k1
+    lost = (torso.t_ns > t_ns[k0]) & (torso.t_ns < t_ns[k1])
+    measurements["mocap_torso"] = kept(~lost)
+    kept_times = torso.t_ns[~lost]
+    last, first = kept_times[kept_times <= t_ns[k0]][-1], kept_times[kept_times >= t_ns[k1]][0]
+    expected = (t_ns > last) & (t_ns < first)  # between the samples that bracket the gap
+    assert np.array_equal(gaps(), expected) and k0 <= np.flatnonzero(expected)[0] <= k0 + 1
+    late = torso.t_ns > t_ns[k1 + 20]  # and it starts late
+    measurements["mocap_torso"] = kept(late)
+    assert np.array_equal(gaps(), t_ns < torso.t_ns[late][0])
 
 
 def test_short_windows_stitch_the_motion_and_its_covariance(estimated, tmp_path):
