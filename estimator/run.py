@@ -68,7 +68,8 @@ class Summary:
     model_error_mean: dict[str, float] = field(default_factory=dict)
     # per window, where the kept physics solution started: "kinematic" | "measurements"
     kept_starts: list[str] = field(default_factory=list)
-    # per window, the starts its physics was solved from (init = "best": both across a gap)
+    # per window, the starts its physics was solved from ("best": both; "best_across_gaps":
+    # both only where the measurements have a gap)
     starts_tried: list[list[str]] = field(default_factory=list)
     # fit_softness: the factors on the model's own ε and κ the first window gave, their σ
     softness_fit: dict[str, float] = field(default_factory=dict)
