@@ -97,10 +97,7 @@ class Settings:
         "moved, through its marginalized past (0: none; memory grows with it)",
     )
     max_iterations: int = setting(
-        30,
-        "Levenberg–Marquardt iterations per solve (a window has 1, or 3 with init = best "
-        "across a gap)",
-        positive=True,
+        30, "Levenberg–Marquardt iterations per solve (a window has up to 3)", positive=True
     )
     init: str = setting(
         "best",
