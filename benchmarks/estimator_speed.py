@@ -32,14 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from estimator.config import load_config
+from estimator.knots import knot_grid
 from estimator.logs import read_log
-from estimator.problem import (
-    KnotModel,
-    accelerations,
-    build_problem,
-    knot_grid,
-    velocities,
-)
+from estimator.problem import KnotModel, accelerations, build_problem, velocities
 from estimator.run import estimate, initial_trajectory
 from estimator.settings import CHOICES, Settings
 from estimator.smoother import THREADS

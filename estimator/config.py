@@ -13,7 +13,7 @@ Schema (see `configs/README.md` for a worked example):
 
     [streams.<name>]          # one table per stream; <name> is how results refer to it
     type = "pose"             # pose | tf | rigid_bodies | markers | imu | joint_state |
-                              # command | wrench
+                              # command | wrench | contact_flags
     topic = "/mocap/torso"    # the log topic
     stamp = "header"          # "header" (header.stamp; default) or "log" (the recorder's
                               # receive time; the only choice for Float64MultiArray)
@@ -35,7 +35,10 @@ Schema (see `configs/README.md` for a worked example):
                     measurement range per sensor axis, optional: a sample at or beyond it
                     is saturated and left out)                (sensor_msgs/Imu)
       joint_state   joints = "model" (message names are model joint names) or
-                    joints = { ros_name = "model_joint", ... }   (sensor_msgs/JointState)
+                    joints = { ros_name = "model_joint", ... }   (sensor_msgs/JointState);
+                    use = ["position", "effort"] (default; "velocity" too to fit the
+                    encoders' velocities; efforts are the known force where no command
+                    drives the joint)
       command       actuators = ["a0", "a1", ...]  (Float64MultiArray: data[i] drives a_i), or
                     actuators = "model" (data[i] drives the model's actuator i; with field,
                     JointTrajectory joint names are the actuators' joints), or
@@ -43,6 +46,10 @@ Schema (see `configs/README.md` for a worked example):
                     field = "positions" | "velocities" | "accelerations" | "effort"
                     (JointTrajectory: the first point's field)
       wrench        site = "ft_site", quat_site_sensor = [w, x, y, z]   (WrenchStamped)
+      contact_flags bodies = ["foot_body", ...] or geoms = ["foot_geom", ...]: data[i] of a
+                    Float64MultiArray says whether foot i touches (≥ 0.5) or not (stamp
+                    "log"); a foot flagged off carries no contact force, one flagged on does
+                    not slip (`estimator/factors/contact_flags.py`)
 
     Mountings without editing the model: pose, tf, imu and wrench streams take
     mount = { pos = [x, y, z], quat = [w, x, y, z] }, the sensor's (marker's, rigid body's)
@@ -62,6 +69,7 @@ quantities in the joint's own units, rad or m):
     wrench                   force_std [N], torque_std [N·m], force_bias_std [N],
                              torque_bias_std [N·m] (the offset's prior), force_bias_walk
                              [N/√s], torque_bias_walk [N·m/√s]
+    contact_flags            force_std [N] (a foot flagged off), slip_std [m/s] (on)
 
 Each stream is resolved to `elements` (model names, the output column order) and `sources`
 (the matching names in the messages), so the reader handles every kind the same way.
@@ -95,10 +103,22 @@ from estimator.errors import ConfigError
 from physics.errors import PhysicsError
 from physics.model import MODEL_DIR, bundled_models, load_model
 
-KINDS = ("pose", "tf", "rigid_bodies", "markers", "imu", "joint_state", "command", "wrench")
+KINDS = (
+    "pose",
+    "tf",
+    "rigid_bodies",
+    "markers",
+    "imu",
+    "joint_state",
+    "command",
+    "wrench",
+    "contact_flags",
+)
 MOCAP_KINDS = ("pose", "tf", "rigid_bodies", "markers")  # world-frame poses and positions
 STAMPS = ("header", "log")
 TRAJECTORY_FIELDS = ("positions", "velocities", "accelerations", "effort")
+JOINT_FIELDS = ("position", "velocity", "effort")  # what a joint_state stream can `use`
+ARRAY_KINDS = ("command", "contact_flags")  # read from Float64MultiArray, which has no header
 
 # Noise keys and their defaults, per kind.
 NOISE_DEFAULTS: Mapping[str, Mapping[str, float]] = {
@@ -123,6 +143,7 @@ NOISE_DEFAULTS: Mapping[str, Mapping[str, float]] = {
         "force_bias_walk": 0.01,
         "torque_bias_walk": 5e-4,
     },
+    "contact_flags": {"force_std": 5.0, "slip_std": 0.02},
 }
 
 _COMMON_KEYS = ("type", "topic", "stamp", "time_offset_ns", "required", "noise", "max_abs")
@@ -132,9 +153,10 @@ _KIND_KEYS: Mapping[str, tuple[str, ...]] = {
     "rigid_bodies": ("bodies",),
     "markers": ("markers",),
     "imu": ("site", "body", "quat_site_sensor", "accel_range", "gyro_range", "mount"),
-    "joint_state": ("joints",),
+    "joint_state": ("joints", "use"),
     "command": ("actuators", "field"),
     "wrench": ("site", "body", "quat_site_sensor", "mount"),
+    "contact_flags": ("bodies", "geoms"),
 }
 _TOP_KEYS = ("model", "description", "streams")
 SECTIONS = ("estimator", "simulate")  # tables of physfuse's own, validated on loading
@@ -146,6 +168,7 @@ _OBJ_TYPES: Mapping[str, int] = {
     "site": mujoco.mjtObj.mjOBJ_SITE,
     "joint": mujoco.mjtObj.mjOBJ_JOINT,
     "actuator": mujoco.mjtObj.mjOBJ_ACTUATOR,
+    "geom": mujoco.mjtObj.mjOBJ_GEOM,
 }
 
 
@@ -201,6 +224,7 @@ class StreamConfig:
     noise: Mapping[str, float]
     quat_site_sensor: tuple[float, float, float, float] = _IDENTITY_WXYZ
     field: str | None = None  # command from JointTrajectory: which point field
+    use: tuple[str, ...] = ("position", "effort")  # joint_state: the JointState fields used
     # imu: the measurement range per sensor axis (a sample at or beyond it is saturated)
     accel_range: float = math.inf  # m/s²
     gyro_range: float = math.inf  # rad/s
@@ -316,6 +340,7 @@ def _names(model: mujoco.MjModel, element_type: str) -> tuple[str, ...]:
         "site": model.nsite,
         "joint": model.njnt,
         "actuator": model.nu,
+        "geom": model.ngeom,
     }[element_type]
     obj = _OBJ_TYPES[element_type]
     return tuple(mujoco.mj_id2name(model, obj, i) or "" for i in range(count))
@@ -447,14 +472,15 @@ class _Parser:
         mount = self.mount(raw, key, name, kind, mapping)
         if mount is not None:
             mapping |= {"element_type": "site", "elements": (mount.site,), "mount": mount}
-        has_header = not (kind == "command" and mapping["field"] is None)
+        has_header = not (kind in ARRAY_KINDS and mapping.get("field") is None)
         stamp = self.choice(
             raw.get("stamp", "header" if has_header else "log"), f"{key}.stamp", STAMPS
         )
         if stamp == "header" and not has_header:
             raise self.error(
                 f"{key}.stamp",
-                "'header' is not possible: a Float64MultiArray command has no header; use 'log'",
+                f"'header' is not possible: a Float64MultiArray {kind} stream has no header; use "
+                "'log'",
             )
         return StreamConfig(
             name=name,
@@ -522,7 +548,42 @@ class _Parser:
                 f"{key}.joints",
                 f'expected "model" or a table {{ ros_name = "model_joint" }}, got {joints!r}',
             )
-        return self.name_table(raw, key, "joints", "joint", "JointState name")
+        return self.name_table(raw, key, "joints", "joint", "JointState name") | self.use(raw, key)
+
+    def use(self, raw: dict[str, Any], key: str) -> dict[str, Any]:
+        """joint_state `use`: the JointState fields the estimator fits, a list of JOINT_FIELDS."""
+        value = raw.get("use", ["position", "effort"])
+        if not isinstance(value, list) or not value:
+            raise self.error(
+                f"{key}.use",
+                f"expected a non-empty list of {', '.join(JOINT_FIELDS)}, got {self.show(value)}",
+            )
+        fields = tuple(self.choice(v, f"{key}.use[{i}]", JOINT_FIELDS) for i, v in enumerate(value))
+        return {"use": fields}
+
+    def map_contact_flags(
+        self, raw: dict[str, Any], key: str, model: mujoco.MjModel
+    ) -> dict[str, Any]:
+        given = [k for k in ("bodies", "geoms") if k in raw]
+        if len(given) != 1:
+            raise self.error(
+                f"{key}.bodies",
+                'give one of bodies = ["foot_body", ...] or geoms = ["foot_geom", ...]: '
+                "data[i] of the flags' Float64MultiArray is foot i",
+            )
+        (table_key,) = given
+        feet = raw[table_key]
+        if not isinstance(feet, list) or not feet:
+            raise self.error(
+                f"{key}.{table_key}", f"expected a non-empty list of names, got {self.show(feet)}"
+            )
+        names = tuple(self.string(f, f"{key}.{table_key}[{i}]") for i, f in enumerate(feet))
+        return {
+            "element_type": "body" if table_key == "bodies" else "geom",
+            "elements": names,
+            "sources": tuple(str(i) for i in range(len(names))),
+            "element_keys": tuple(f"{key}.{table_key}[{i}]" for i in range(len(names))),
+        }
 
     def map_command(self, raw: dict[str, Any], key: str, model: mujoco.MjModel) -> dict[str, Any]:
         actuators = raw.get("actuators")

@@ -41,6 +41,7 @@ from estimator.evaluate import (
     intersect_intervals,
     json_ready,
 )
+from estimator.factors import UNITS
 from estimator.logs import Measurement, read_log
 from estimator.model_checks import check_for_estimate
 from estimator.outputs import OutputFile
@@ -51,7 +52,6 @@ from estimator.problem import (
     model_with_sensors,
     velocities,
 )
-from estimator.rotations import quat_errors
 from estimator.run import estimate, initial_trajectory
 from estimator.settings import Settings
 from estimator.simulate.writer import body_twist, state_data
@@ -352,21 +352,10 @@ def _print_truth(report: dict[str, Any]) -> None:
 
 
 # -- held-out sensor ------------------------------------------------------------------------------
-_UNITS = {
-    "pose": ("m", "rad"),
-    "tf": ("m", "rad"),
-    "rigid_bodies": ("m", "rad"),
-    "markers": ("m",),
-    "imu": ("m/s²", "rad/s"),
-    "joint_state": ("rad or m",),
-    "wrench": ("N", "N·m"),
-}
-
-
 def holdout(log_path: Path, config_path: Path, stream: str, quiet: bool = True) -> dict[str, Any]:
     """metrics.json of held-out-sensor validation (see the module docstring)."""
     config = _config(config_path)
-    valid = [s.name for s in config.streams.values() if s.kind in _UNITS]
+    valid = [s.name for s in config.streams.values() if s.kind in UNITS]
     if stream not in valid:
         what = "is a command stream (no sensor measures it)" if stream in config.streams else ""
         raise PhysfuseError(
@@ -395,16 +384,17 @@ def holdout(log_path: Path, config_path: Path, stream: str, quiet: bool = True) 
     predicted = predictor.predict(stream, held.t_ns, est.qpos)
     raw_qpos = initial_trajectory(predictor.model, measurements, est.t_ns)
     raw_predicted = predictor.predict(stream, held.t_ns, raw_qpos)
-    channels, sigma = stream_channels(config, stream, held)
-    residual = residuals(config.streams[stream].kind, predicted, held)
-    raw_residual = residuals(config.streams[stream].kind, raw_predicted, held)
+    unit = UNITS[config.streams[stream].kind].holdout(config.streams[stream])
+    channels, sigma = unit.names, unit.sigma
+    residual = unit.residuals(predicted, held)
+    raw_residual = unit.residuals(raw_predicted, held)
     acc_stage = predictor.acceleration_stage(stream, config.streams[stream].kind)
     raw_residual[:, acc_stage] = np.nan  # no raw acceleration: double differences of samples
     section: dict[str, Any] = {
         "stream": stream,
         "kind": held.kind,
         "topic": held.topic,
-        "units": _UNITS[held.kind],
+        "units": unit.units,
         "samples": len(held),
         "estimated_without_it": {
             "knots": summary.knots,
@@ -511,60 +501,6 @@ class SensorPredictor:
         outside = (t_ns < self.t_ns[0]) | (t_ns > self.t_ns[-1])
         out[outside] = np.nan
         return out
-
-
-def stream_channels(
-    config: Config, stream: str, m: Measurement
-) -> tuple[tuple[str, ...], np.ndarray]:
-    """Channel names and σ (C,) of a stream's residuals (`residuals` order)."""
-    cfg = config.streams[stream]
-    noise = cfg.noise
-    names: list[str] = []
-    sigma: list[float] = []
-    for element in cfg.elements:
-        if cfg.kind in ("pose", "tf", "rigid_bodies"):
-            names += [f"{element}.{c}" for c in ("x", "y", "z", "rot_x", "rot_y", "rot_z")]
-            sigma += [noise["position_std_m"]] * 3 + [noise["orientation_std_rad"]] * 3
-        elif cfg.kind == "markers":
-            names += [f"{element}.{c}" for c in ("x", "y", "z")]
-            sigma += [noise["position_std_m"]] * 3
-        elif cfg.kind == "imu":
-            names += [f"accel_{c}" for c in "xyz"] + [f"gyro_{c}" for c in "xyz"]
-            sigma += [noise["accel_std"]] * 3 + [noise["gyro_std"]] * 3
-        elif cfg.kind == "joint_state":
-            names.append(element)
-            sigma.append(noise["position_std"])
-        elif cfg.kind == "wrench":
-            names += [f"force_{c}" for c in "xyz"] + [f"torque_{c}" for c in "xyz"]
-            sigma += [noise["force_std"]] * 3 + [noise["torque_std"]] * 3
-    return tuple(names), np.array(sigma)
-
-
-def residuals(kind: str, predicted: np.ndarray, m: Measurement) -> np.ndarray:
-    """(N, C) predicted − measured per channel; orientations as Log(measured⁻¹ ⊗ predicted)."""
-    values = m.values
-    parts = []
-    if kind in ("pose", "tf", "rigid_bodies"):
-        for e in range(values.shape[1]):
-            pred = predicted[:, 7 * e : 7 * e + 7]
-            parts.append(pred[:, :3] - values[:, e, :3])
-            ok = np.all(np.isfinite(pred[:, 3:]), axis=1) & np.all(
-                np.isfinite(values[:, e, 3:7]), axis=1
-            )
-            rot = np.full((len(values), 3), np.nan)
-            rot[ok] = quat_errors(pred[ok, 3:], values[ok, e, 3:7])[0]
-            parts.append(rot)
-    elif kind == "markers":
-        parts += [
-            predicted[:, 3 * e : 3 * e + 3] - values[:, e, :3] for e in range(values.shape[1])
-        ]
-    elif kind == "imu":  # components: q (4), gyro (3), accel (3); sensors: accel, gyro
-        parts += [predicted[:, :3] - values[:, 0, 7:10], predicted[:, 3:6] - values[:, 0, 4:7]]
-    elif kind == "joint_state":
-        parts.append(predicted - values[:, :, 0])
-    elif kind == "wrench":
-        parts.append(predicted - values[:, 0, :6])
-    return np.concatenate(parts, axis=1)
 
 
 def _print_holdout(section: dict[str, Any]) -> None:

@@ -22,7 +22,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from estimator.config import Config, NameCheck, check_model_names, load_config
+from estimator.config import ARRAY_KINDS, Config, NameCheck, check_model_names, load_config
 from estimator.errors import ConfigError, MissingTopicError
 from estimator.logs import ros2_types
 from estimator.logs.measurements import BadSampleCounts, Measurement, TopicStats
@@ -178,7 +178,7 @@ def _checklist(log: Log, config: Config) -> list[CheckItem]:
 
 
 def _source_label(kind: str, field: str | None, source: str) -> str:
-    if kind == "command" and field is None:
+    if kind in ARRAY_KINDS and field is None:
         return f"array entry {source}"
     return {
         "joint_state": "joint",

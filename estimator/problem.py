@@ -31,17 +31,16 @@ step v_k moves through; accelerometer and force/torque over [t_k, t_k + h), wher
 from __future__ import annotations
 
 import copy
-import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
 
 from estimator.actuation import check_commanded, commanded_force, moment_dense
-from estimator.config import Config, StreamConfig
-from estimator.errors import ConfigError, LogError
-from estimator.logs.align import resample
+from estimator.config import Config
+from estimator.factors import UNITS, Grid, SensorBlock
+from estimator.knots import held_at_knots, knot_grid
 from estimator.logs.measurements import Measurement
 from estimator.rotations import jr_inverse, quat_log_between
 from estimator.settings import Settings, softness_error
@@ -53,64 +52,6 @@ _OBJ = mujoco.mjtObj
 _SENS = mujoco.mjtSensor
 
 MODEL_ERROR = "model error"  # Problem.bias_of key of the generalized force offset
-
-
-@dataclass(frozen=True)
-class SensorBlock:
-    """One stream's rows in the residual: which sensordata entries and how to compare them.
-
-    rows:    (n,) sensordata indices of the prediction, in measurement component order
-    kind:    "vector" (p − m), "quat" (Log(m⁻¹ p), 4 sensordata rows → 3 residual rows)
-    values:  (T, n_meas) the measurement at each knot (NaN: no measurement)
-    sigma:   (n_res,) per residual row
-    bias:    slice of the bias vector added to the prediction (IMU, F/T), or None
-    stage:   "pos", "vel" or "acc": what the sensor depends on (an acceleration-stage sensor
-             sees a knot's position through a_k, 1/h² strongly)
-    group:   rows per element (a marker's 3, a joint's 1): missing samples and the robust
-             kernel go by element; 0: the block is one element
-    kernel:  the Settings field that names its robust kernel
-    alpha:   (T,) or None. A position-stage stream's samples, one per knot and slot: the
-             sample of knot k was taken at t_{k−1} + α_k h and is predicted between the two
-             knots, (1 − α_k) s(q_{k−1}) + α_k s(q_k) (quaternions normalized). None: the
-             measurement is at the knot's time (interpolated to it, or averaged)
-    slot:    which of a knot's samples (0: its first; a stream faster than the knots has
-             several blocks)
-    labels:  (n_res,) what each residual row is: element and component ("torso position z")
-    """
-
-    stream: str
-    kind: str
-    rows: np.ndarray
-    values: np.ndarray
-    sigma: np.ndarray
-    bias: slice | None = None
-    stage: str = "pos"
-    group: int = 0
-    kernel: str = "sensor_kernel"
-    alpha: np.ndarray | None = None
-    slot: int = 0
-    labels: tuple[str, ...] = ()
-
-    def elements(self) -> list[SensorBlock]:
-        """One block per element (per `group` rows); [self] for a one-element block."""
-        if not self.group or self.group == len(self.rows):
-            return [self]
-        g = self.group
-        sigma = self.sigma
-        return [
-            replace(
-                self,
-                rows=self.rows[i : i + g],
-                values=self.values[:, i : i + g],
-                sigma=sigma[..., i : i + g],
-                bias=None
-                if self.bias is None
-                else slice(self.bias.start + i, self.bias.start + i + g),
-                group=0,
-                labels=self.labels[i : i + g],
-            )
-            for i in range(0, len(self.rows), g)
-        ]
 
 
 @dataclass
@@ -173,64 +114,13 @@ def model_with_sensors(
     spec = config.model_spec()
     names: dict[str, list[str]] = {}
     for stream in config.streams.values():
-        names[stream.name] = _add_sensors(spec, stream)
+        unit = UNITS.get(stream.kind)
+        names[stream.name] = unit.add_sensors(spec, stream) if unit else []
     model = spec.compile()
     if base is not None:  # keep the caller's options (e.g. solver settings)
         model.opt.timestep = base.opt.timestep
     use_discrete_inverse(model)  # the knots' mj_inverse inverts the Euler step, as the engine's
     return model, names
-
-
-# MuJoCo sensors measuring each stream kind, per element, in measurement order: (type, tag)
-_SENSORS_OF_KIND: Mapping[str, tuple[tuple[mujoco.mjtSensor, str], ...]] = {
-    "pose": ((_SENS.mjSENS_FRAMEPOS, "pos"), (_SENS.mjSENS_FRAMEQUAT, "quat")),
-    "tf": ((_SENS.mjSENS_FRAMEPOS, "pos"), (_SENS.mjSENS_FRAMEQUAT, "quat")),
-    "rigid_bodies": ((_SENS.mjSENS_FRAMEPOS, "pos"), (_SENS.mjSENS_FRAMEQUAT, "quat")),
-    "markers": ((_SENS.mjSENS_FRAMEPOS, "pos"),),
-    "imu": ((_SENS.mjSENS_ACCELEROMETER, "accel"), (_SENS.mjSENS_GYRO, "gyro")),
-    "joint_state": ((_SENS.mjSENS_JOINTPOS, "pos"),),
-    "wrench": ((_SENS.mjSENS_FORCE, "force"), (_SENS.mjSENS_TORQUE, "torque")),
-}
-_OBJ_OF_ELEMENT = {"body": _OBJ.mjOBJ_XBODY, "site": _OBJ.mjOBJ_SITE, "joint": _OBJ.mjOBJ_JOINT}
-
-
-def _add_sensors(spec: mujoco.MjSpec, stream: StreamConfig) -> list[str]:
-    """Add the stream's sensors to `spec`; returns their names, elements × sensors order."""
-    added: list[str] = []
-    for element in stream.elements:
-        for kind, tag in _SENSORS_OF_KIND.get(stream.kind, ()):
-            sensor = spec.add_sensor()
-            sensor.name = f"physfuse/{stream.name}/{element}/{tag}"
-            sensor.type = kind
-            sensor.objtype = _OBJ_OF_ELEMENT[stream.element_type]
-            sensor.objname = element
-            added.append(sensor.name)
-    return added
-
-
-MAX_KNOTS = 50_000_000  # 28 h at 2 ms: more is a clock mismatch, and would not fit in memory
-
-
-def knot_grid(measurements: Mapping[str, Measurement], h: float) -> np.ndarray:
-    """(T,) knot times spanning the measured streams (commands excluded), step h."""
-    spans = {
-        m.stream: (int(m.t_ns[0]), int(m.t_ns[-1]))
-        for m in measurements.values()
-        if len(m) and m.kind != "command"
-    }
-    if not spans:
-        raise ConfigError("no measurements to estimate from: every mapped stream is empty")
-    step = round(h * 1e9)
-    start = min(a for a, _ in spans.values())
-    end = max(b for _, b in spans.values())
-    if (end - start) // step >= MAX_KNOTS:  # streams on different clocks, not a long log
-        each = ", ".join(f"{name} {a / 1e9:.3f}–{b / 1e9:.3f} s" for name, (a, b) in spans.items())
-        raise LogError(
-            f"the streams span {(end - start) / 1e9:.6g} s, over {MAX_KNOTS:.0e} knots of "
-            f"{h * 1e3:g} ms ({each}); are they on different clocks? Align them with a "
-            "stream's time_offset_ns, or read the recorder's times with stamp = \"log\""
-        )
-    return np.arange(start, end + 1, step, dtype=np.int64)
 
 
 def build_problem(
@@ -260,115 +150,28 @@ def build_problem(
     if t_ns is None:
         t_ns = knot_grid(measurements, h)
     blocks: list[SensorBlock] = []
-    imu_streams: list[str] = []
     walks: list[np.ndarray] = []  # per bias dim: random walk σ per √s, σ of b_0
     priors: list[np.ndarray] = []
     bias_of: dict[str, slice] = {}
+    efforts: dict[int, np.ndarray] = {}
     nb = 0
     for name, stream in config.streams.items():
         m = measurements.get(name)
-        if m is None or not len(m) or stream.kind == "command":
+        unit = UNITS.get(stream.kind)
+        if m is None or not len(m) or unit is None:
             continue
-        adr = [_sensor_rows(model, s) for s in sensor_names[name]]
-        noise = stream.noise
-        # position-stage samples (poses, markers, encoders) by slot: (values, α or None)
-        slots: list[tuple[np.ndarray, np.ndarray | None]] = []
-        if stream.kind in POSITION_STAGE_KINDS:
-            slots = (
-                samples_between_knots(m, t_ns)
-                if at_sample_times
-                else [(interpolated_at_knots(m, t_ns), None)]
-            )
-        if stream.kind in ("pose", "tf", "rigid_bodies"):
-            for slot, (values, alpha) in enumerate(slots):  # values (T, E, 7)
-                for e, element in enumerate(stream.elements):
-                    pos_rows, quat_rows = adr[2 * e], adr[2 * e + 1]
-                    for kind, rows, part, std, quantity in (
-                        ("vector", pos_rows, slice(0, 3), noise["position_std_m"], "position"),
-                        ("quat", quat_rows, slice(3, 7), noise["orientation_std_rad"], "rotation"),
-                    ):
-                        blocks.append(
-                            SensorBlock(
-                                name,
-                                kind,
-                                rows,
-                                values[:, e, part],
-                                np.full(3, std),
-                                alpha=alpha,
-                                slot=slot,
-                                labels=_labels(element, quantity),
-                            )
-                        )
-        elif stream.kind in ("markers", "joint_state"):  # a group per marker (3 rows), joint (1)
-            g, noise_key = (
-                (3, "position_std_m") if stream.kind == "markers" else (1, "position_std")
-            )
-            for slot, (values, alpha) in enumerate(slots):
-                blocks.append(
-                    SensorBlock(
-                        name,
-                        "vector",
-                        np.concatenate(adr),
-                        values[:, :, :g].reshape(len(t_ns), -1),
-                        np.full(values.shape[1] * g, noise[noise_key]),
-                        group=g,
-                        alpha=alpha,
-                        slot=slot,
-                        labels=tuple(
-                            label
-                            for element in stream.elements
-                            for label in (
-                                _labels(element, "") if g == 3 else (f"{element} position",)
-                            )
-                        ),
-                    )
-                )
-        elif stream.kind == "imu":
-            m = without_saturated(m, stream)
-            accel, accel_counts = averaged_at_knots(m, t_ns, "acc")
-            gyro, gyro_counts = averaged_at_knots(m, t_ns, "vel")
-            blocks += _biased_pair(
-                name,
-                adr,
-                (accel[:, 0, 7:10], gyro[:, 0, 4:7]),
-                (accel_counts[:, 0, 7:10], gyro_counts[:, 0, 4:7]),
-                (noise["accel_std"], noise["gyro_std"]),
-                ("acc", "vel"),
-                nb,
-                ("accel", "gyro"),
-            )
-            imu_streams.append(name)
-            walks.append(
-                np.r_[np.full(3, noise["accel_bias_walk"]), np.full(3, noise["gyro_bias_walk"])]
-            )
-            priors.append(
-                np.r_[np.full(3, settings.bias_prior_accel), np.full(3, settings.bias_prior_gyro)]
-            )
-            bias_of[name] = slice(nb, nb + 6)
-            nb += 6
-        elif stream.kind == "wrench":
-            wrench, counts = averaged_at_knots(m, t_ns, "acc")
-            blocks += _biased_pair(
-                name,
-                adr,
-                (wrench[:, 0, :3], wrench[:, 0, 3:6]),
-                (counts[:, 0, :3], counts[:, 0, 3:6]),
-                (noise["force_std"], noise["torque_std"]),
-                ("acc", "acc"),
-                nb,
-                ("force", "torque"),
-                kernel="force_sensor_kernel",
-            )
-            walks.append(
-                np.r_[np.full(3, noise["force_bias_walk"]), np.full(3, noise["torque_bias_walk"])]
-            )
-            priors.append(
-                np.r_[np.full(3, noise["force_bias_std"]), np.full(3, noise["torque_bias_std"])]
-            )
-            bias_of[name] = slice(nb, nb + 6)
-            nb += 6
+        rows = [_sensor_rows(model, s) for s in sensor_names[name]]
+        out = unit.factors(stream, m, rows, Grid(model, t_ns, settings, nb, at_sample_times))
+        blocks += out.blocks
+        efforts |= out.efforts
+        if len(out.bias_walk):
+            walks.append(out.bias_walk)
+            priors.append(out.bias_prior)
+            bias_of[name] = slice(nb, nb + len(out.bias_walk))
+            nb += len(out.bias_walk)
+    imu_streams = [n for n in bias_of if config.streams[n].kind == "imu"]
     qfrc_known, known_sigma, actuated, ctrl = _known_forces(
-        model, config, measurements, t_ns, settings
+        model, config, measurements, efforts, t_ns, settings
     )
     # the kinematic method: no physics factor anywhere
     sigma = np.full_like(known_sigma, np.inf) if settings.method == "kinematic" else known_sigma
@@ -398,42 +201,6 @@ def build_problem(
         error_dofs,
         ctrl,
     )
-
-
-def _biased_pair(
-    name: str,
-    rows: list[np.ndarray],
-    values: tuple[np.ndarray, np.ndarray],
-    counts: tuple[np.ndarray, np.ndarray],
-    std: tuple[float, float],
-    stages: tuple[str, str],
-    nb: int,
-    quantities: tuple[str, str],
-    kernel: str = "sensor_kernel",
-) -> list[SensorBlock]:
-    """The two 3-axis halves of an IMU (accelerometer, gyro) or a force/torque sensor, with
-    their biases b[nb : nb + 3] and b[nb + 3 : nb + 6]. values, counts: (T, 3) each, the mean
-    of the samples a knot stands for and how many; averaging n samples gives σ/√n."""
-    return [
-        SensorBlock(
-            name,
-            "vector",
-            rows[i],
-            values[i],
-            std[i] / np.sqrt(np.maximum(counts[i], 1)),  # (T, 3)
-            slice(nb + 3 * i, nb + 3 * i + 3),
-            stages[i],
-            kernel=kernel,
-            labels=_labels("", quantities[i]),
-        )
-        for i in range(2)
-    ]
-
-
-def _labels(element: str, quantity: str) -> tuple[str, ...]:
-    """Labels of a 3-axis residual: "<element> <quantity> x", … (either may be empty)."""
-    prefix = " ".join(w for w in (element, quantity) if w)
-    return tuple(f"{prefix} {axis}".strip() for axis in "xyz")
 
 
 def joint_name(model: mujoco.MjModel, j: int) -> str:
@@ -473,93 +240,11 @@ def _sensor_rows(model: mujoco.MjModel, name: str) -> np.ndarray:
     return np.arange(adr, adr + dim)
 
 
-def interpolated_at_knots(m: Measurement, t_ns: np.ndarray) -> np.ndarray:
-    """(T, E, K) linear interpolation (quaternions normalized) between the samples that
-    bracket each knot; NaN across gaps longer than 2.5 sample periods."""
-    period = int(np.median(np.diff(m.t_ns))) if len(m) > 1 else 0
-    return resample(m, t_ns, max_gap_ns=int(2.5 * period))
-
-
-POSITION_STAGE_KINDS = ("pose", "tf", "rigid_bodies", "markers", "joint_state")
-
-
-def samples_between_knots(
-    m: Measurement, t_ns: np.ndarray
-) -> list[tuple[np.ndarray, np.ndarray | None]]:
-    """The samples of `m` on the knots, by slot: per slot, values (T, E, K) (NaN where a knot
-    has no sample in that slot) and α (T,). The sample at t ∈ (t_{k−1}, t_k] belongs to knot k,
-    α_k = (t − t_{k−1})/h, its first such sample to slot 0, a second to slot 1, …. Only knots
-    whose prediction is on interior knots (k − 1 ≥ 1 and k ≤ T − 2; k = 1 for a sample at t_1)
-    carry samples."""
-    T = len(t_ns)
-    h_ns = int(t_ns[1] - t_ns[0]) if T > 1 else 1
-    k = np.searchsorted(t_ns, m.t_ns, side="left")
-    inside = ((k >= 2) & (k <= T - 2)) | ((k == 1) & (m.t_ns == t_ns[min(1, T - 1)]))
-    k, t, values = k[inside], m.t_ns[inside], m.values[inside]
-    slot = np.arange(len(k)) - np.searchsorted(k, k, side="left")  # samples sorted by time
-    out: list[tuple[np.ndarray, np.ndarray | None]] = []
-    for s in range(int(slot.max()) + 1 if len(k) else 1):
-        mine = slot == s
-        slot_values = np.full((T, *m.values.shape[1:]), np.nan)
-        slot_values[k[mine]] = values[mine]
-        alpha = np.ones(T)
-        alpha[k[mine]] = (t[mine] - t_ns[k[mine] - 1]) / h_ns
-        out.append((slot_values, alpha))
-    return out
-
-
-def averaged_at_knots(
-    m: Measurement, t_ns: np.ndarray, stage: str
-) -> tuple[np.ndarray, np.ndarray]:
-    """(T, E, K) mean of the samples each knot stands for and (T, E, K) their counts.
-
-    NaN components (not carried, or left out) are not counted; NaN where a knot has none.
-    The samples of knot k are those of the Euler step its quantity belongs to:
-    stage "vel": (t_k − h, t_k], the step that v_k = (q_k ⊖ q_{k−1})/h moves through (the
-    mean rate over it; gyro); "acc": [t_k, t_k + h), the step over which qacc_k acts
-    (accelerometer, force/torque).
-    """
-    h_ns = int(t_ns[1] - t_ns[0]) if len(t_ns) > 1 else 1
-    if stage == "vel":
-        index = np.searchsorted(t_ns, m.t_ns, side="left")
-        ok = (index < len(t_ns)) & (m.t_ns > t_ns[np.minimum(index, len(t_ns) - 1)] - h_ns)
-    else:
-        index = np.searchsorted(t_ns, m.t_ns, side="right") - 1
-        ok = (index >= 0) & (m.t_ns < t_ns[np.maximum(index, 0)] + h_ns)
-    carried = np.isfinite(m.values[ok])
-    sums = np.zeros((len(t_ns), *m.values.shape[1:]))
-    n = np.zeros_like(sums)
-    np.add.at(sums, index[ok], np.where(carried, m.values[ok], 0.0))
-    np.add.at(n, index[ok], carried)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(n > 0, sums / n, np.nan), n
-
-
-def without_saturated(m: Measurement, stream: StreamConfig) -> Measurement:
-    """The IMU samples with their accelerometer (gyro) left out (NaN) where a sensor axis is
-    at or beyond `accel_range` (`gyro_range`): a saturated reading only bounds the truth.
-
-    The reader has turned the vectors into the site frame; the range is per sensor axis,
-    v_sensor = R_site_sensorᵀ v_site.
-    """
-    if not len(m) or (math.isinf(stream.accel_range) and math.isinf(stream.gyro_range)):
-        return m
-    mat = np.zeros(9)
-    mujoco.mju_quat2Mat(mat, np.array(stream.quat_site_sensor))
-    R_site_sensor = mat.reshape(3, 3)
-    values = m.values.copy()
-    for part, limit in ((slice(7, 10), stream.accel_range), (slice(4, 7), stream.gyro_range)):
-        v_sensor = values[:, 0, part] @ R_site_sensor  # rows: (R_site_sensorᵀ v_site)ᵀ
-        # the rail within rounding of the frame change
-        saturated = np.any(np.abs(v_sensor) >= limit * (1.0 - 1e-9), axis=1)
-        values[saturated, 0, part] = np.nan
-    return replace(m, values=values)
-
-
 def _known_forces(
     model: mujoco.MjModel,
     config: Config,
     measurements: Mapping[str, Measurement],
+    efforts: Mapping[int, np.ndarray],
     t_ns: np.ndarray,
     settings: Settings,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -584,7 +269,7 @@ def _known_forces(
     ctrl = np.full((T, model.nu), np.nan)
     commands = [(n, m) for n, m in measurements.items() if m.kind == "command" and len(m)]
     for name, m in commands:
-        held = _hold(m, t_ns)  # (T, E)
+        held = held_at_knots(m, t_ns)  # (T, E)
         ids = [mujoco.mj_name2id(model, _OBJ.mjOBJ_ACTUATOR, a) for a in m.elements]
         check_commanded(model, ids, f"{config.path}: streams.{name}")
         for e, a in enumerate(ids):
@@ -595,16 +280,10 @@ def _known_forces(
             known[k, driven] = 0.0
             sigma[k, driven] = settings.physics_std_actuated
     else:
-        for m in measurements.values():
-            if m.kind != "joint_state" or not len(m):
-                continue
-            effort = _hold(m, t_ns, component=2)
-            for e, joint in enumerate(m.elements):
-                j = mujoco.mj_name2id(model, _OBJ.mjOBJ_JOINT, joint)
-                dof = model.jnt_dofadr[j]
-                ok = np.isfinite(effort[:, e])
-                known[ok, dof] = effort[ok, e]
-                sigma[ok, dof] = settings.physics_std_actuated
+        for dof, effort in efforts.items():  # measured joint efforts (`factors.joint_state`)
+            ok = np.isfinite(effort)
+            known[ok, dof] = effort[ok]
+            sigma[ok, dof] = settings.physics_std_actuated
     return known, sigma, actuated, ctrl
 
 
@@ -618,15 +297,6 @@ def u_known_along(problem: Problem, qpos: np.ndarray) -> np.ndarray:
         mujoco.mj_fwdPosition(model, data)
         mujoco.mj_fwdVelocity(model, data)
         out[k] = problem.u_known(data, k)[0]
-    return out
-
-
-def _hold(m: Measurement, t_ns: np.ndarray, component: int = 0) -> np.ndarray:
-    """(T, E) the last sample at or before each knot (NaN before the first)."""
-    index = np.searchsorted(m.t_ns, t_ns, side="right") - 1
-    out = np.full((len(t_ns), len(m.elements)), np.nan)
-    ok = index >= 0
-    out[ok] = m.values[index[ok], :, component]
     return out
 
 

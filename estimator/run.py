@@ -18,6 +18,7 @@ from estimator.actuation import moment_dense
 from estimator.config import Config
 from estimator.contact_forces import balanced_constraints
 from estimator.estimate import Estimate
+from estimator.knots import interpolated_at_knots, knot_grid
 from estimator.logs.measurements import Measurement
 from estimator.problem import (
     MODEL_ERROR,
@@ -25,8 +26,6 @@ from estimator.problem import (
     accelerations,
     build_problem,
     dof_names,
-    interpolated_at_knots,
-    knot_grid,
     model_with_sensors,
     u_known_along,
     velocities,

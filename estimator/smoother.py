@@ -28,12 +28,12 @@ import mujoco
 import numpy as np
 import scipy.linalg
 
+from estimator.factors import SensorBlock
 from estimator.problem import (
     MODEL_ERROR,
     KnotModel,
     Problem,
     RotationDofs,
-    SensorBlock,
     accelerations,
     difference_jacobians,
     retract,

@@ -212,7 +212,7 @@ STREAM = '[streams.s]\ntype = "pose"\ntopic = "/p"\n'
         (
             HEAD + '[streams.s]\ntype = "command"\ntopic = "/c"\nactuators = ["hip_motor"]\n'
             'stamp = "header"\n',
-            "streams.s.stamp: 'header' is not possible: a Float64MultiArray command has no "
+            "streams.s.stamp: 'header' is not possible: a Float64MultiArray command stream has no "
             "header; use 'log'",
         ),
         (

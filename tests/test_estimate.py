@@ -14,11 +14,9 @@ from mcap_ros2.reader import read_ros2_messages
 
 from estimator.cli import main
 from estimator.config import load_config
+from estimator.knots import knot_grid
 from estimator.logs import Measurement, read_log
-from estimator.problem import (
-    build_problem,
-    knot_grid,
-)
+from estimator.problem import build_problem
 from estimator.run import collect_estimate, initial_trajectory
 from estimator.settings import Settings
 from estimator.smoother import BandedSystem, Linearizer

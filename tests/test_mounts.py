@@ -12,11 +12,9 @@ import tomlkit
 from estimator.cli import main
 from estimator.config import load_config
 from estimator.errors import ConfigError
+from estimator.knots import knot_grid
 from estimator.logs import read_log
-from estimator.problem import (
-    build_problem,
-    knot_grid,
-)
+from estimator.problem import build_problem
 from estimator.run import initial_trajectory
 from estimator.settings import Settings
 from estimator.smoother import Linearizer

@@ -235,8 +235,8 @@ def test_estimate_uses_the_rest_of_a_log_with_bad_stamps_and_values(tmp_path, ca
 
 def test_streams_on_different_clocks_are_one_line_not_an_allocation():
     from estimator.errors import LogError
+    from estimator.knots import knot_grid
     from estimator.logs.measurements import BadSampleCounts, Measurement
-    from estimator.problem import knot_grid
 
     def stream(name, t0_ns):
         t = t0_ns + np.arange(10) * 2_000_000

@@ -19,17 +19,11 @@ import numpy as np
 import pytest
 
 from estimator.config import load_config
+from estimator.factors.imu import without_saturated
+from estimator.knots import averaged_at_knots, samples_between_knots
 from estimator.logs import read_log
 from estimator.logs.measurements import Measurement
-from estimator.problem import (
-    KnotModel,
-    accelerations,
-    averaged_at_knots,
-    build_problem,
-    samples_between_knots,
-    velocities,
-    without_saturated,
-)
+from estimator.problem import KnotModel, accelerations, build_problem, velocities
 from estimator.settings import Settings
 from estimator.simulate.sensors import Trajectory
 from estimator.simulate.simulation import scenario_config, simulate

@@ -26,6 +26,7 @@ STREAM_COMPONENTS: Mapping[str, tuple[str, ...]] = {
     "joint_state": JOINT,
     "command": SCALAR,
     "wrench": WRENCH,
+    "contact_flags": SCALAR,
 }
 
 

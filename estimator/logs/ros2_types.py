@@ -35,6 +35,7 @@ ACCEPTED_TYPES: Mapping[str, tuple[str, ...]] = {
     "joint_state": (JOINT_STATE,),
     "command": (FLOAT64_MULTI_ARRAY, JOINT_TRAJECTORY),
     "wrench": (WRENCH_STAMPED,),
+    "contact_flags": (FLOAT64_MULTI_ARRAY,),
 }
 
 # mocap4r2_msgs (MOCAP4ROS2-Project/mocap4r2_msgs), which no standard type store ships.

@@ -41,7 +41,7 @@ import numpy as np
 from mcap_ros2._dynamic import serialize_dynamic  # as estimator.simulate.writer
 from mcap_ros2.decoder import DecoderFactory
 
-from estimator.config import Config, StreamConfig
+from estimator.config import ARRAY_KINDS, Config, StreamConfig
 from estimator.logs import ros2_types
 from estimator.logs.decode import DECODERS, TRAJECTORY, BadSampleError, Record, non_finite, stamp_ns
 from estimator.logs.measurements import STREAM_COMPONENTS, BadSampleCounts, Sample, TopicStats
@@ -455,9 +455,10 @@ class _StreamState:
             return plan
         cfg = self.cfg
         assert cfg.sources is not None
-        if cfg.kind == "command" and cfg.field is None and len(names) != len(cfg.elements):
+        if cfg.kind in ARRAY_KINDS and cfg.field is None and len(names) != len(cfg.elements):
+            what = "actuators" if cfg.kind == "command" else "feet"
             raise BadSampleError(
-                "wrong_length", f"{len(names)} values for {len(cfg.elements)} actuators"
+                "wrong_length", f"{len(names)} values for {len(cfg.elements)} {what}"
             )
         lookup = {name: i for i, name in enumerate(names)}
         index = np.array([lookup.get(src, -1) for src in cfg.sources], dtype=np.intp)
