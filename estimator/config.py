@@ -143,7 +143,7 @@ NOISE_DEFAULTS: Mapping[str, Mapping[str, float]] = {
         "force_bias_walk": 0.01,
         "torque_bias_walk": 5e-4,
     },
-    "contact_flags": {"force_std": 5.0, "slip_std": 0.02},
+    "contact_flags": {"force_std": 5.0, "slip_std": 0.05},
 }
 
 _COMMON_KEYS = ("type", "topic", "stamp", "time_offset_ns", "required", "noise", "max_abs")
@@ -542,7 +542,7 @@ class _Parser:
                 "elements": names,
                 "sources": names,
                 "element_keys": tuple(f"{key}.joints" for _ in names),
-            }
+            } | self.use(raw, key)
         if isinstance(joints, str):
             raise self.error(
                 f"{key}.joints",

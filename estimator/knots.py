@@ -13,6 +13,7 @@ Three alignments, by what a sample measures (`estimator.problem` explains the Eu
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import replace
 
 import numpy as np
 
@@ -78,7 +79,7 @@ def samples_between_knots(
 
 
 def averaged_at_knots(
-    m: Measurement, t_ns: np.ndarray, stage: str
+    m: Measurement, t_ns: np.ndarray, stage: str, late_ns: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:
     """(T, E, K) mean of the samples each knot stands for and (T, E, K) their counts.
 
@@ -86,9 +87,13 @@ def averaged_at_knots(
     The samples of knot k are those of the Euler step its quantity belongs to:
     stage "vel": (t_k − h, t_k], the step that v_k = (q_k ⊖ q_{k−1})/h moves through (the
     mean rate over it; gyro); "acc": [t_k, t_k + h), the step over which qacc_k acts
-    (accelerometer, force/torque).
+    (accelerometer, force/torque). late_ns shifts the bins: a sample stamped up to late_ns
+    after t_k still belongs to knot k (a stream sampled on the knots' own clock, whose stamps
+    jitter around the knot times).
     """
     h_ns = int(t_ns[1] - t_ns[0]) if len(t_ns) > 1 else 1
+    if late_ns:
+        m = replace(m, t_ns=m.t_ns - late_ns)
     if stage == "vel":
         index = np.searchsorted(t_ns, m.t_ns, side="left")
         ok = (index < len(t_ns)) & (m.t_ns > t_ns[np.minimum(index, len(t_ns) - 1)] - h_ns)

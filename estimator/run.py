@@ -628,11 +628,16 @@ def residuals_by_type(
         cost[block.name] = cost.get(block.name, 0.0) + float(block.cost.sum())
     out = {}
     for name, slots in parts.items():
-        first, *more = (np.concatenate(rows, axis=1) for _, rows in sorted(slots.items()))
-        for r in more:
-            first = np.where(np.isnan(first), r, first)
-        out[name] = np.full((problem.T, first.shape[1]), np.nan)
-        out[name][1:-1] = first
+        # a later slot's j-th block is the first slot's j-th (a stream's position rows come
+        # first; the rows only its first slot has, velocities, after them)
+        (_, first), *more = sorted(slots.items())
+        for _, rows in more:
+            first = [
+                np.where(np.isnan(f), r, f) if j < len(rows) else f
+                for j, (f, r) in enumerate(zip(first, rows + first[len(rows) :], strict=True))
+            ]
+        out[name] = np.full((problem.T, sum(f.shape[1] for f in first)), np.nan)
+        out[name][1:-1] = np.concatenate(first, axis=1)
     return out, cost
 
 

@@ -8,8 +8,8 @@ contact detection (a force threshold, a switch, the gait scheduler's stance).
                                             a foot on the ground does not slip
 
 The flag of knot k is the last one at or before t_k. p is the foot geom's centre (`geoms`),
-or, for a foot body (`bodies`), a site `physfuse/<stream>/<body>/sole` added at the mean
-position of the body's colliding geoms. A flag says nothing about how hard a foot presses:
+or, for a foot body (`bodies`), a site `physfuse/<stream>/<body>/sole` added at its sole
+(`_sole_site`). A flag says nothing about how hard a foot presses:
 that stays with the physics factor.
 """
 
@@ -33,6 +33,7 @@ _OBJ = mujoco.mjtObj
 _SENS = mujoco.mjtSensor
 # MuJoCo's contact sensor: intprm = (data fields as bits of mjtConDataField, reduce, num)
 _NET_FORCE = (1 << int(mujoco.mjtConDataField.mjCONDATA_FORCE), 3, 1)  # 3: netforce
+_SOLE_BAND_M = 0.02
 
 
 def add_sensors(spec: mujoco.MjSpec, stream: StreamConfig) -> list[str]:
@@ -58,16 +59,20 @@ def add_sensors(spec: mujoco.MjSpec, stream: StreamConfig) -> list[str]:
 
 
 def _sole_site(spec: mujoco.MjSpec, model: mujoco.MjModel, stream: StreamConfig, body: str) -> str:
-    """A site at the mean position of the body's colliding geoms, in the body's frame."""
+    """A site at the foot's sole: the mean position, in the body's frame, of the body's
+    colliding geoms within 2 cm of its lowest one in the model's reference pose (a foot
+    sphere rather than the shin capsule above it; a flat foot's heel and toe together)."""
     b = model.body(body).id
-    geoms = [
-        g
-        for g in range(model.ngeom)
-        if model.geom_bodyid[g] == b and (model.geom_contype[g] or model.geom_conaffinity[g])
-    ]
+    geoms = np.flatnonzero(
+        (model.geom_bodyid == b) & ((model.geom_contype != 0) | (model.geom_conaffinity != 0))
+    )
     site = spec.body(body).add_site()
     site.name = f"physfuse/{stream.name}/{body}/sole"
-    site.pos = np.mean(model.geom_pos[geoms], axis=0) if geoms else np.zeros(3)
+    if len(geoms):
+        data = mujoco.MjData(model)
+        mujoco.mj_kinematics(model, data)
+        z = data.geom_xpos[geoms, 2]
+        site.pos = np.mean(model.geom_pos[geoms[z < z.min() + _SOLE_BAND_M]], axis=0)
     return site.name
 
 

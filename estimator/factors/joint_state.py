@@ -1,7 +1,8 @@
 """Joint encoders (sensor_msgs/JointState): positions, velocities and measured efforts.
 
     position   (q_j(t) − m_q) / σ_q        at the sample's time, between knots k−1 and k
-    velocity   (v_j,k − m̄_v) √n / σ_v      the mean over (t_k − h, t_k], v_k's Euler step
+    velocity   (v_j,k − m̄_v) √n / σ_v      the mean over (t_k − 0.9 h, t_k + 0.1 h], v_k's
+                                           Euler step (a stamp jittering just past t_k its own)
     effort     the generalized force of dof j, known to the physics factor where no command
                drives it: W (u_j(q, v, a) − m_τ) with σ = physics_std_actuated
 
@@ -26,6 +27,7 @@ from estimator.knots import averaged_at_knots, held_at_knots
 from estimator.logs.measurements import Measurement
 
 _SENS = mujoco.mjtSensor
+_LATE = 0.1  # of a knot step: how late a velocity sample may be stamped and still be its knot's
 
 
 def add_sensors(spec: mujoco.MjSpec, stream: StreamConfig) -> list[str]:
@@ -56,7 +58,10 @@ def factors(
                 )
             )
     if "velocity" in stream.use:
-        mean, counts = averaged_at_knots(m, grid.t_ns, "vel")
+        # an encoder often samples on the controller's clock, as the knots do: a stamp a
+        # little after t_k is knot k's velocity, not the next step's
+        late_ns = int(_LATE * (grid.t_ns[1] - grid.t_ns[0])) if grid.T > 1 else 0
+        mean, counts = averaged_at_knots(m, grid.t_ns, "vel", late_ns)
         out.blocks.append(
             SensorBlock(
                 stream.name,

@@ -923,3 +923,72 @@ class ForceTorque:
             "torque_bias": torque_bias,
         }
         return SensorOutput(messages, truth)
+
+
+@dataclass(frozen=True)
+class FootContacts:
+    """Binary foot-contact flags (std_msgs/Float64MultiArray: data[i] = 1.0 when foot i
+    touches, else 0.0), as a legged robot's contact estimator publishes them: a foot body is
+    in contact when the normal force of its contacts exceeds `threshold_n`, evaluated at each
+    control step's state and controls (pushes left out), published every step, after
+    `clock`'s latency, with no header (config stamp = "log").
+    """
+
+    feet: tuple[str, ...]
+    topic: str = "/foot_contacts"
+    threshold_n: float = 5.0
+    clock: Clock = Clock(offset_ns=0, latency_ns=500_000, latency_jitter_ns=100_000)
+    name: str = "contacts"
+
+    def topics(self) -> dict[str, str]:
+        return {self.topic: ros2_types.FLOAT64_MULTI_ARRAY}
+
+    def streams(self, model: mujoco.MjModel) -> dict[str, dict[str, Any]]:
+        return {
+            self.name: {
+                "type": "contact_flags",
+                "topic": self.topic,
+                "bodies": list(self.feet),
+                "stamp": "log",
+                "time_offset_ns": -self.clock.latency_ns,
+            }
+        }
+
+    def settings(self) -> dict[str, Any]:
+        return _settings(self)
+
+    def normal_forces(self, traj: Trajectory) -> np.ndarray:
+        """(N, feet) the summed normal contact force on each foot body at each step [N]."""
+        m = traj.model
+        feet = _body_ids(m, self.feet, self.name)
+        d = mujoco.MjData(m)
+        force = np.zeros(6)
+        out = np.zeros((traj.steps, len(feet)))
+        for k in range(traj.steps):
+            d.qpos[:], d.qvel[:], d.ctrl[:] = traj.qpos[k], traj.qvel[k], traj.ctrl[k]
+            mujoco.mj_forward(m, d)
+            for i in range(d.ncon):
+                c = d.contact[i]
+                bodies = m.geom_bodyid[[c.geom1, c.geom2]]
+                for f, body in enumerate(feet):
+                    if body in bodies:
+                        mujoco.mj_contactForce(m, d, i, force)
+                        out[k, f] += force[0]
+        return out
+
+    def sample(self, traj: Trajectory, rng: np.random.Generator) -> SensorOutput:
+        t = traj.step_ns(np.arange(traj.steps))
+        log_times = self.clock.log_times(t, rng)
+        normal = self.normal_forces(traj)
+        flags = (normal > self.threshold_n).astype(float)
+        messages = [
+            Message(
+                self.topic,
+                ros2_types.FLOAT64_MULTI_ARRAY,
+                traj.t0_ns + int(log_times[k]),
+                {"layout": {"dim": [], "data_offset": 0}, "data": flags[k].tolist()},
+                RELIABLE_QOS,
+            )
+            for k in range(traj.steps)
+        ]
+        return SensorOutput(messages, {"t_ns": t, "flags": flags, "normal_force": normal})
