@@ -72,6 +72,16 @@ def _variant(text: str, variant: str) -> str:
     return "".join(kept)
 
 
+def _cli(*args: str) -> None:
+    """`physfuse ARGS`; its last error line if it fails."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "estimator.cli", *args], capture_output=True, text=True, cwd=ROOT
+    )
+    if proc.returncode:
+        lines = proc.stderr.strip().splitlines() or [f"exit status {proc.returncode}"]
+        raise SystemExit(f"physfuse {args[0]}: {lines[-1]}")
+
+
 def run(robot: str, seconds: float, work: Path) -> dict:
     scenario = _scenario(robot)
     log = work / f"{robot}.mcap"
@@ -84,21 +94,10 @@ def run(robot: str, seconds: float, work: Path) -> dict:
         config.write_text(_variant(text, variant))
         out = work / name
         started = time.perf_counter()
-        cli = [sys.executable, "-m", "estimator.cli"]
-        evaluate = ["evaluate", str(out / "estimate.mcap"), "--truth", str(log)]
-        subprocess.run(
-            [*cli, "estimate", str(log), "--config", str(config), "--out", str(out), "--quiet"],
-            check=True,
-            capture_output=True,
-            cwd=ROOT,
-        )
+        _cli("estimate", str(log), "--config", str(config), "--out", str(out), "--quiet")
         wall = time.perf_counter() - started
-        subprocess.run(
-            [*cli, *evaluate, "--config", str(config), "--out", str(out)],
-            check=True,
-            capture_output=True,
-            cwd=ROOT,
-        )
+        estimate = str(out / "estimate.mcap")
+        _cli("evaluate", estimate, "--truth", str(log), "--config", str(config), "--out", str(out))
         metrics = json.loads((out / "metrics.json").read_text())["summary"]
         rows[variant] = {m: metrics.get(m) for m in METRICS} | {"wall_s": wall}
     return rows

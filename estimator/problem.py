@@ -40,6 +40,7 @@ import numpy as np
 from estimator.actuation import check_commanded, commanded_force, moment_dense
 from estimator.config import Config
 from estimator.factors import UNITS, Grid, SensorBlock
+from estimator.factors.base import MODEL_ERROR
 from estimator.knots import held_at_knots, knot_grid
 from estimator.logs.measurements import Measurement
 from estimator.rotations import jr_inverse, quat_log_between
@@ -50,8 +51,6 @@ from physics.native import use_discrete_inverse
 
 _OBJ = mujoco.mjtObj
 _SENS = mujoco.mjtSensor
-
-MODEL_ERROR = "model error"  # Problem.bias_of key of the generalized force offset
 
 
 @dataclass

@@ -28,9 +28,9 @@ import mujoco
 import numpy as np
 import scipy.linalg
 
-from estimator.factors import SensorBlock
+from estimator.factors import bias_walk, measurement, motion, physics
+from estimator.factors.base import Block, Terms
 from estimator.problem import (
-    MODEL_ERROR,
     KnotModel,
     Problem,
     RotationDofs,
@@ -39,7 +39,6 @@ from estimator.problem import (
     retract,
     velocities,
 )
-from estimator.rotations import quat_errors, quat_log_between
 from physics.softness import scale as scale_softness
 
 # MuJoCo threads of one estimate (a fleet task runs on its one CPU: 1)
@@ -106,63 +105,6 @@ class MarginalPrior:
     def cost(self, model: mujoco.MjModel, qpos: np.ndarray, bias: np.ndarray) -> float:
         e = self.error(model, qpos, bias)
         return 0.5 * float(e @ self.info @ e)
-
-
-@dataclass
-class Terms:
-    """Inverse dynamics and sensors at the interior knots k = 1 … T−2, stacked (row i ↔ knot
-    i + 1). a, u, known (u_known at the state): (K, nv); s: (K, ns). With Jacobians,
-    derivatives with respect to (x_{k−1}, x_k, x_{k+1}): Ju (K, nv, 3 nv) of u − u_known,
-    Js (K, ns, 3 nv), and da (K, 3, nv, 3) by key and dof group (`Linearizer.dense`: a_k's row
-    d reaches only d's group)."""
-
-    a: np.ndarray
-    u: np.ndarray
-    known: np.ndarray
-    s: np.ndarray
-    Ju: np.ndarray | None = None
-    Js: np.ndarray | None = None
-    da: np.ndarray | None = None
-
-
-@dataclass
-class Block:
-    """One factor's whitened rows at every interior knot, robust weights applied.
-
-    r: (K, m); J: (K, m, 3 nv) over (x_{k−1}, x_k, x_{k+1}) or None; dofwise (the priors, m =
-    nv): J (K, keys, nv, 3) by key and dof group instead (`Linearizer.dense`; the jerk prior
-    reaches 4 keys, to x_{k+2}); J_bias: (K, m, nb) over b_k or None; cost: (K,) robust cost of
-    the rows at each knot; valid: (K, m) rows that carry a factor (a measurement, a known
-    force); the others are 0.
-    """
-
-    name: str
-    r: np.ndarray
-    J: np.ndarray | None
-    cost: np.ndarray
-    valid: np.ndarray
-    J_bias: np.ndarray | None = None
-    dofwise: bool = False  # row d reaches dof d's group only (itself; a rotation's 3)
-    sensor: bool = False  # a sensor's rows (`BandedSystem.of` stacks them with the others')
-    slot: int = 0  # a sensor's: which of a knot's samples (`SensorBlock.slot`)
-
-
-def huber(norm: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
-    """GTSAM's mEstimator.Huber, vectorized: loss ρ(n) (½n² within k, k(n − k/2) beyond) and
-    weight w(n) = min(1, k/n), so that √w scales a block's rows."""
-    inside = norm <= k
-    loss = np.where(inside, 0.5 * norm**2, k * (norm - 0.5 * k))
-    weight = np.where(inside, 1.0, k / np.where(inside, 1.0, norm))
-    return loss, weight
-
-
-def cauchy(norm: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
-    """GTSAM's mEstimator.Cauchy, vectorized: ρ(n) = ½k² log(1 + n²/k²), w(n) = k²/(k² + n²)
-    (redescending: a residual far beyond k stops pulling)."""
-    return 0.5 * k**2 * np.log1p((norm / k) ** 2), k**2 / (k**2 + norm**2)
-
-
-KERNELS = {"huber": huber, "cauchy": cauchy}
 
 
 class Linearizer:
@@ -274,145 +216,16 @@ class Linearizer:
     # -- whitened, robustly weighted rows of every factor --------------------------------------
 
     def blocks(self, t: Terms, bias: np.ndarray, robust: bool = True) -> list[Block]:
-        """Physics, prior and sensor rows at every interior knot (one Block per factor; a pose
-        stream has a position and a rotation block).
+        """Every factor's whitened, robustly weighted rows at every interior knot, one Block
+        per factor (`estimator.factors`: physics, the motion priors, each sensor block).
 
         robust=False leaves the rows unweighted (for reporting residuals)."""
         p = self.problem
-        k_huber = p.settings.huber_k
-        jac = t.Ju is not None
-        K = p.T - 2
-        out: list[Block] = []
-
-        def weighted(
-            block: Block, kernel: str, scale: np.ndarray | float = 1.0, group: int = 0
-        ) -> Block:
-            """The robust kernel on the norm of each element's rows (`group` rows each; 0:
-            the whole block) per knot; its threshold scales with `scale`."""
-            m = block.r.shape[1]
-            g = group or m
-            norm = np.linalg.norm(block.r.reshape(K, m // g, g), axis=2) / np.reshape(
-                scale, (-1, 1)
-            )
-            loss, weight = KERNELS[kernel](norm, k_huber)
-            block.cost = loss.sum(axis=1) * np.square(scale)
-            if robust:
-                root = np.repeat(np.sqrt(weight), g, axis=1)
-                block.r = block.r * root
-                if block.J is not None:
-                    block.J *= root[:, None, :, None] if block.dofwise else root[:, :, None]
-                if block.J_bias is not None:
-                    block.J_bias *= root[:, :, None]
-            return block
-
-        # physics: W (u − u_known); rows with no known force are 0. Robust too, so that impacts
-        # and unmodeled contacts do not bend the motion; the threshold scales with √(rows)
-        # (a knot's norm over n consistent rows is ≈ √n)
-        sigma = p.physics_sigma[1:-1]
-        known = np.isfinite(sigma)
-        w = np.where(known, 1.0 / np.where(known, sigma, 1.0), 0.0)
-        r = np.nan_to_num((t.u - t.known) * w)
-        J = t.Ju * w[:, :, None] if t.Ju is not None else None
-        J_offset = None
-        if p.error_dofs.size:  # u − u_known − e_k on the unactuated dofs
-            dofs, cols = p.error_dofs, p.bias_of[MODEL_ERROR]
-            r[:, dofs] -= bias[1:-1, cols] * w[:, dofs]
-            if jac:
-                J_offset = np.zeros((K, p.model.nv, p.nb))
-                J_offset[:, dofs, np.arange(cols.start, cols.stop)] = -w[:, dofs]
-        physics = Block("physics", r, J, np.zeros(K), known, J_offset)
-        scale = np.sqrt(np.maximum(known.sum(axis=1), 1))
-        out.append(weighted(physics, p.settings.physics_kernel, scale))
-        # smoothness prior: a_k / σ_a
-        sa = p.settings.accel_prior_std
-        r = t.a / sa
-        J = t.da / sa if t.da is not None else None
-        cost = 0.5 * np.sum(r**2, axis=1)
-        out.append(Block("prior", r, J, cost, np.ones(r.shape, bool), dofwise=True))
-        if self.span == 4:  # constant-acceleration prior (a_{k+1} − a_k)/(h σ_j), k < T − 2
-            sj = p.h * p.settings.jerk_prior_std
-            r = np.zeros_like(t.a)
-            r[:-1] = (t.a[1:] - t.a[:-1]) / sj
-            J = None
-            if t.da is not None:  # by key and dof group, as da
-                J = np.zeros((K, 4, *t.da.shape[2:]))
-                J[:-1, :3] -= t.da[:-1] / sj
-                J[:-1, 1:] += t.da[1:] / sj
-            valid = np.ones(r.shape, bool)
-            valid[-1] = False
-            jerk = Block("jerk prior", r, J, np.zeros(K), valid, dofwise=True)
-            if p.settings.jerk_robust_kernel == "none":
-                jerk.cost = 0.5 * np.sum(r**2, axis=1)
-                out.append(jerk)
-            else:  # per dof: an impact on one leg does not unsmooth the others
-                out.append(weighted(jerk, p.settings.jerk_robust_kernel, group=1))
-        # sensors, robust
-        for sensor in p.blocks:
-            meas = sensor.values[1:-1]
-            g = sensor.group or meas.shape[1]
-            valid = np.isfinite(meas).reshape(K, -1, g).all(axis=2)  # (K, elements)
-            measured = np.repeat(valid, g, axis=1)  # (K, n_meas)
-            sig = sensor.sigma[1:-1] if sensor.sigma.ndim == 2 else np.tile(sensor.sigma, (K, 1))
-            pred = t.s[:, sensor.rows]
-            Js = t.Js[:, sensor.rows] if t.Js is not None else None
-            if sensor.alpha is not None:
-                pred, Js = self.between_knots(sensor, pred, Js)
-            J_bias = None
-            if sensor.kind == "quat":
-                target = np.where(measured, meas, pred)
-                if Js is None:  # e = Log(meas⁻¹ ⊗ pred)
-                    r = quat_log_between(target, pred) / sig
-                else:
-                    e, de_dp = quat_errors(pred, target)
-                    r = e / sig
-                    Js = np.einsum("kij,kjc->kic", de_dp, Js)
-            else:
-                b = bias[1:-1, sensor.bias] if sensor.bias is not None else 0.0
-                r = (pred + b - np.where(measured, meas, 0.0)) / sig
-                if jac and sensor.bias is not None:
-                    J_bias = np.zeros((K, r.shape[1], p.nb))
-                    rows = np.arange(r.shape[1])
-                    J_bias[:, rows, sensor.bias.start + rows] = 1.0 / sig
-            J = Js / sig[:, :, None] if Js is not None else None
-            rows_valid = np.repeat(valid, r.shape[1] // valid.shape[1], axis=1)  # (K, n_res)
-            r[~rows_valid] = 0.0
-            for M in (J, J_bias):
-                if M is not None:
-                    M[~rows_valid] = 0.0
-            block = Block(
-                sensor.stream, r, J, np.zeros(K), rows_valid, J_bias, sensor=True, slot=sensor.slot
-            )
-            kernel = getattr(p.settings, sensor.kernel)
-            out.append(weighted(block, kernel, group=sensor.group))
+        out = [physics.rows(p, t, bias, robust), motion.acceleration_prior(p, t)]
+        if self.span == 4:
+            out.append(motion.jerk_prior(p, t, robust))
+        out += [measurement.rows(p, t, bias, sensor, robust) for sensor in p.blocks]
         return out
-
-    def between_knots(
-        self, sensor: SensorBlock, s: np.ndarray, Js: np.ndarray | None
-    ) -> tuple[np.ndarray, np.ndarray | None]:
-        """A sample between knots k − 1 and k (`SensorBlock.alpha`): the prediction
-        (1 − α) s_{k−1} + α s_k (K, n) and its Jacobian (K, n, 3 nv) over (x_{k−1}, x_k,
-        x_{k+1}) from the knots' own s and Js (position stage: on x_k alone). A quaternion
-        q_{k−1} is first put on q_k's side and the blend m normalized: ∂(m/‖m‖)/∂m =
-        (I − p̂p̂ᵀ)/‖m‖, whose projection the quaternion error's Jacobian makes anyway."""
-        assert sensor.alpha is not None and sensor.stage == "pos"
-        alpha = sensor.alpha[1:-1, None]  # (K, 1); knot 1's α is 1: s_0 is not needed
-        prev = np.concatenate([s[:1], s[:-1]])  # s_{k−1}
-        w_prev = 1.0 - alpha
-        if sensor.kind == "quat":
-            w_prev = w_prev * np.where(np.sum(prev * s, axis=1, keepdims=True) < 0, -1.0, 1.0)
-        blend = w_prev * prev + alpha * s
-        scale = np.ones_like(alpha)
-        if sensor.kind == "quat":
-            scale = 1.0 / np.linalg.norm(blend, axis=1, keepdims=True)
-            blend *= scale
-        if Js is None:
-            return blend, None
-        nv = self.problem.model.nv
-        at_k = Js[:, :, nv : 2 * nv]
-        J = np.zeros_like(Js)
-        J[1:, :, :nv] = (w_prev * scale)[1:, :, None] * at_k[:-1]
-        J[:, :, nv : 2 * nv] = (alpha * scale)[:, :, None] * at_k
-        return blend, J
 
     def cost(self, qpos: np.ndarray, bias: np.ndarray) -> tuple[float, dict[str, float]]:
         """Total robust cost and its split by factor type."""
@@ -449,28 +262,15 @@ class Linearizer:
     # -- sensor biases (IMU, force/torque): prior on b_0 and random walk ---------------------
 
     def bias_rows(self, bias: np.ndarray) -> list[tuple[int, int | None, np.ndarray, np.ndarray]]:
-        """(key_a, key_b, residual, σ) for the bias prior (key_b None) and each walk step, as
-        rows (for the dense checks; `bias_cost` and `BandedSystem.of` use them vectorized)."""
-        p = self.problem
-        if not p.nb:
-            return []
-        walk = p.bias_walk * np.sqrt(p.h)
-        out: list[tuple[int, int | None, np.ndarray, np.ndarray]] = [
-            (0, None, bias[0], p.bias_prior)
-        ]
-        for k in range(p.T - 1):
-            out.append((k, k + 1, bias[k + 1] - bias[k], walk))
-        return out
+        """The bias prior's and walk's rows (for the dense checks; `bias_walk`)."""
+        return bias_walk.rows(self.problem, bias) if self.problem.nb else []
 
     def bias_cost(self, bias: np.ndarray) -> dict[str, float]:
         """{"bias": cost of the bias prior (unless a marginal prior holds b_0) and random walk}
         ({} without biased sensors)."""
-        p = self.problem
-        if not p.nb:
+        if not self.problem.nb:
             return {}
-        walk = (bias[1:] - bias[:-1]) / (p.bias_walk * np.sqrt(p.h))
-        first = np.sum((bias[0] / p.bias_prior) ** 2) if self.prior is None else 0.0
-        return {"bias": 0.5 * float(first + np.sum(walk**2))}
+        return {"bias": bias_walk.cost(self.problem, bias, with_prior=self.prior is None)}
 
     def close(self) -> None:
         self.pool.shutdown()
@@ -537,7 +337,7 @@ class BandedSystem:
                 )
                 for b in blocks
             ]
-        T, nz, nv, span = p.T, p.nz, p.model.nv, lin.span
+        T, nz, span = p.T, p.nz, lin.span
         K = T - 2
         # Knot row i (knot k = i + 1) reaches keys i + a, a = 0 … span − 1. Each factor's
         # Jacobian is split by key into runs of consecutive columns, (a, columns in J,
@@ -619,20 +419,10 @@ class BandedSystem:
             g += more_g
             for mine, more in zip(lower, more_lower, strict=True):
                 mine += more
-        if p.nb:  # bias prior on b_0, random walk (b_{k+1} − b_k)/(σ_walk √h)
-            b_ = slice(nv, nz)
-            if lin.prior is None:  # (a marginal prior holds b_0 already)
-                diag[0, b_, b_] += np.diag(p.bias_prior**-2.0)
-                g[0, b_] += bias[0] / p.bias_prior**2
-            W = np.diag((p.bias_walk * np.sqrt(p.h)) ** -2.0)
-            # the steps k → k + 1 (to keys ≤ the last kept row's knot, with `until`)
+        if p.nb:  # (a marginal prior holds b_0 already) the steps k → k + 1 to keys ≤ the
+            # last kept row's knot, with `until`
             n = T - 1 if until is None else min(T - 1, until - lin.span + 2)
-            step = (bias[1 : n + 1] - bias[:n]) @ W
-            diag[:n, b_, b_] += W
-            diag[1 : n + 1, b_, b_] += W
-            lower[0][:n, b_, b_] -= W
-            g[:n, b_] -= step
-            g[1 : n + 1, b_] += step
+            bias_walk.add_normal_equations(p, bias, diag, lower[0], g, lin.prior is None, n)
         if lin.prior is not None:  # ½ eᵀΛe on the first keys: H += Λ, g += Λe
             assert qpos is not None, "a marginal prior needs the window's qpos"
             prior = lin.prior

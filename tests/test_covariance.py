@@ -12,12 +12,13 @@ import pytest
 
 from estimator import smoother
 from estimator.config import load_config
+from estimator.factors.base import Block
 from estimator.knots import knot_grid
 from estimator.logs import read_log
 from estimator.problem import build_problem
 from estimator.run import initial_trajectory
 from estimator.settings import Settings
-from estimator.smoother import Block, honest, solve_window
+from estimator.smoother import honest, solve_window
 
 ROOT = Path(__file__).resolve().parent.parent
 

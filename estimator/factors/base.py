@@ -30,6 +30,7 @@ from estimator.logs.measurements import Measurement
 from estimator.settings import Settings
 
 _OBJ = mujoco.mjtObj
+MODEL_ERROR = "model error"  # Problem.bias_of key of the generalized force offset
 OBJ_OF_ELEMENT = {
     "body": _OBJ.mjOBJ_XBODY,
     "site": _OBJ.mjOBJ_SITE,
@@ -211,3 +212,43 @@ def biased_pair(
         )
         for i in range(2)
     ]
+
+
+# -- a factor's rows at every interior knot ----------------------------------------------------
+@dataclass
+class Terms:
+    """Inverse dynamics and sensors at the interior knots k = 1 … T−2, stacked (row i ↔ knot
+    i + 1). a, u, known (u_known at the state): (K, nv); s: (K, ns). With Jacobians,
+    derivatives with respect to (x_{k−1}, x_k, x_{k+1}): Ju (K, nv, 3 nv) of u − u_known,
+    Js (K, ns, 3 nv), and da (K, 3, nv, 3) by key and dof group (`Linearizer.dense`: a_k's row
+    d reaches only d's group)."""
+
+    a: np.ndarray
+    u: np.ndarray
+    known: np.ndarray
+    s: np.ndarray
+    Ju: np.ndarray | None = None
+    Js: np.ndarray | None = None
+    da: np.ndarray | None = None
+
+
+@dataclass
+class Block:
+    """One factor's whitened rows at every interior knot, robust weights applied.
+
+    r: (K, m); J: (K, m, 3 nv) over (x_{k−1}, x_k, x_{k+1}) or None; dofwise (the priors, m =
+    nv): J (K, keys, nv, 3) by key and dof group instead (`Linearizer.dense`; the jerk prior
+    reaches 4 keys, to x_{k+2}); J_bias: (K, m, nb) over b_k or None; cost: (K,) robust cost of
+    the rows at each knot; valid: (K, m) rows that carry a factor (a measurement, a known
+    force); the others are 0.
+    """
+
+    name: str
+    r: np.ndarray
+    J: np.ndarray | None
+    cost: np.ndarray
+    valid: np.ndarray
+    J_bias: np.ndarray | None = None
+    dofwise: bool = False  # row d reaches dof d's group only (itself; a rotation's 3)
+    sensor: bool = False  # a sensor's rows (`BandedSystem.of` stacks them with the others')
+    slot: int = 0  # a sensor's: which of a knot's samples (`SensorBlock.slot`)
