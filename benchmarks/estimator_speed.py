@@ -34,10 +34,11 @@ import numpy as np
 from estimator.config import load_config
 from estimator.knots import knot_grid
 from estimator.logs import read_log
-from estimator.problem import KnotModel, accelerations, build_problem, velocities
+from estimator.problem import accelerations, build_problem, velocities
 from estimator.run import estimate, initial_trajectory
 from estimator.settings import CHOICES, Settings
 from estimator.smoother import THREADS
+from physics.knots import KnotEngine
 
 
 def bare_pass_seconds(
@@ -55,16 +56,17 @@ def bare_pass_seconds(
         qpos = initial_trajectory(model, measurements, t_ns)
     v = velocities(model, qpos, h)
     a = accelerations(v, h)
-    workers = [KnotModel(problem) for _ in range(THREADS)]
+    workers = [KnotEngine(model, eps=settings.fd_eps) for _ in range(THREADS)]
     nv, ns = model.nv, model.nsensordata
     out = [np.zeros((nv, nv)) for _ in range(3)] + [np.zeros((nv, ns)) for _ in range(3)]
 
-    def work(chunk: range, worker: KnotModel, jac: bool) -> None:
+    def work(chunk: range, worker: KnotEngine, jac: bool) -> None:
         outs = [o.copy() for o in out]
         for k in chunk:
-            worker.evaluate(k, qpos[k], v[k], a[k])
+            worker.inverse(qpos[k], v[k], a[k])
+            problem.u_known(worker.data, k, jac)
             if jac:
-                worker.jacobians(qpos[k], v[k], a[k], *outs)
+                worker.derivatives(qpos[k], v[k], a[k], *outs)
 
     interior = range(1, len(t_ns) - 1)
     seconds = []

@@ -46,7 +46,6 @@ from estimator.logs import Measurement, read_log
 from estimator.model_checks import check_for_estimate
 from estimator.outputs import OutputFile
 from estimator.problem import (
-    KnotModel,
     accelerations,
     build_problem,
     model_with_sensors,
@@ -57,6 +56,7 @@ from estimator.settings import Settings
 from estimator.simulate.writer import body_twist, state_data
 from estimator.truth import PREFIX, Series, StateTopics, read_metadata, read_state_topics
 from physics.errors import PhysicsError
+from physics.knots import KnotEngine
 from physics.model import load_model
 
 _OBJ = mujoco.mjtObj
@@ -482,9 +482,9 @@ class SensorPredictor:
         model, h = self.model, self.problem.h
         v = velocities(model, qpos, h)
         a = accelerations(v, h)
-        knots = KnotModel(self.problem)
+        engine = KnotEngine(model, self.problem.settings.path)
         rows = self.rows(stream)
-        s = np.array([knots.evaluate(k, qpos[k], v[k], a[k])[2][rows] for k in range(len(qpos))])
+        s = np.array([engine.inverse(qpos[k], v[k], a[k])[1][rows] for k in range(len(qpos))])
         k = np.clip(np.searchsorted(self.t_ns, t_ns, side="right") - 1, 0, len(self.t_ns) - 2)
         alpha = ((t_ns - self.t_ns[k]) / (self.t_ns[k + 1] - self.t_ns[k]))[:, None]
         out = (1.0 - alpha) * s[k] + alpha * s[k + 1]

@@ -45,7 +45,6 @@ from estimator.knots import held_at_knots, knot_grid
 from estimator.logs.measurements import Measurement
 from estimator.rotations import jr_inverse, quat_log_between
 from estimator.settings import Settings, softness_error
-from physics.dynamics import make_dynamics
 from physics.errors import UnsupportedModelError
 from physics.native import use_discrete_inverse
 
@@ -365,52 +364,3 @@ def difference_jacobians(
         d2[:, rot] = jr_inverse(phi)
         d1[:, rot] = -jr_inverse(-phi)
     return d1, d2
-
-
-# ---------------------------------------------------------------------------------------------
-# residuals and linearization
-
-
-@dataclass
-class KnotModel:
-    """The inverse dynamics and sensors at knots, for one thread (owns its MjData)."""
-
-    problem: Problem
-    path: str = "native"
-
-    def __post_init__(self) -> None:
-        self.data = mujoco.MjData(self.problem.model)
-        self.model = self.problem.model
-        self.rotations = RotationDofs.of(self.model)
-        self.known_dq: np.ndarray | None = None
-        self.known_dv: np.ndarray | None = None
-        self.reference = (
-            make_dynamics(self.model, "reference")  # the problem's model, softness applied
-            if self.path == "reference"
-            else None
-        )
-
-    def evaluate(
-        self, k: int, q: np.ndarray, v: np.ndarray, a: np.ndarray, jacobians: bool = False
-    ) -> tuple[np.ndarray, ...]:
-        """u (nv,), u_known (nv,) and sensordata (ns,) at knot k's state; with jacobians, also
-        u_known's derivatives, which `jacobians` (at the same state, next) takes out of u's."""
-        m, d = self.model, self.data
-        d.qpos[:], d.qvel[:], d.qacc[:] = q, v, a
-        mujoco.mj_inverse(m, d)
-        u, s = d.qfrc_inverse.copy(), d.sensordata.copy()
-        known, self.known_dq, self.known_dv = self.problem.u_known(d, k, jacobians)
-        if self.reference is not None:
-            u = self.reference.inverse(q, v, a).qfrc_inverse
-        return u, known, s
-
-    def jacobians(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, *out: np.ndarray) -> None:
-        """mjd_inverseFD at one knot into out = (DfDq, DfDv, DfDa) (nv, nv) and (DsDq, DsDv,
-        DsDa) (nv, ns), in MuJoCo's transposed layout (row i: the derivative by x_i); DfDq and
-        DfDv are those of u − u_known (u_known's from the `evaluate` just before)."""
-        m, d = self.model, self.data
-        d.qpos[:], d.qvel[:], d.qacc[:] = q, v, a
-        mujoco.mjd_inverseFD(m, d, self.problem.settings.fd_eps, False, *out, None)
-        if self.known_dq is not None and self.known_dv is not None:
-            out[0][...] -= self.known_dq.T
-            out[1][...] -= self.known_dv.T

@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import copy
 import os
-import queue
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import mujoco
@@ -31,7 +29,6 @@ import scipy.linalg
 from estimator.factors import bias_walk, measurement, motion, physics
 from estimator.factors.base import Block, Terms
 from estimator.problem import (
-    KnotModel,
     Problem,
     RotationDofs,
     accelerations,
@@ -39,6 +36,7 @@ from estimator.problem import (
     retract,
     velocities,
 )
+from physics.knots import KnotBatch, KnotEngine, chunks
 from physics.softness import scale as scale_softness
 
 # MuJoCo threads of one estimate (a fleet task runs on its one CPU: 1)
@@ -113,9 +111,11 @@ class Linearizer:
     def __init__(self, problem: Problem, prior: MarginalPrior | None = None) -> None:
         self.problem = problem
         self.prior = prior  # on the first keys, from the knots before the window
-        self.idle: queue.SimpleQueue[KnotModel] = queue.SimpleQueue()
-        for _ in range(THREADS):
-            self.idle.put(KnotModel(problem, problem.settings.path))
+        # the engine at the knots, one MjData per thread (`physics.knots`)
+        self.engines = KnotBatch(
+            problem.model, THREADS, problem.settings.path, problem.settings.fd_eps
+        )
+        self.pool = self.engines.pool  # the same threads run the numpy products
         self.rotations = RotationDofs.of(problem.model)
         self.rotation_dofs = [d for _, d in self.rotations.quat_dofs]  # first of each 3
         rotation = {d + i for d in self.rotation_dofs for i in range(3)}
@@ -127,7 +127,6 @@ class Linearizer:
         for d in self.rotation_dofs:
             self.group_cols[d : d + 3] = d + np.arange(3)
             self.group_mask[d : d + 3] = True
-        self.pool = ThreadPoolExecutor(THREADS)
         self.span = 4 if problem.settings.jerk_prior_std > 0 else 3  # keys a knot's rows reach
         self.passes = {True: 0, False: 0}  # MuJoCo passes over all knots, with/without Jacobians
 
@@ -175,34 +174,26 @@ class Linearizer:
                 x1[:, rot] = D[0][:, rot] + times(d2[:-1], P) + times(d1[1:], Q)
                 x2[:, rot] = times(d2[1:], Q)
 
-        def work(chunk: range) -> None:
-            worker = self.idle.get()  # a KnotModel (MjData) no other thread is using
-            try:
-                for k in chunk:
-                    i = k - 1
-                    u[i], known[i], s[i] = worker.evaluate(k, qpos[k], v[k], a[k], with_jacobians)
-                    if with_jacobians:
-                        worker.jacobians(qpos[k], v[k], a[k], *F[:, i], *S[:, i])
-            finally:
-                self.idle.put(worker)
+        def work(engine: KnotEngine, chunk: range) -> None:
+            for k in chunk:
+                i = k - 1
+                u[i], s[i] = engine.inverse(qpos[k], v[k], a[k])
+                known[i], known_dq, known_dv = p.u_known(engine.data, k, with_jacobians)
+                if with_jacobians:
+                    engine.derivatives(qpos[k], v[k], a[k], *F[:, i], *S[:, i])
+                    if known_dq is not None and known_dv is not None:  # of u − u_known
+                        F[0, i] -= known_dq.T
+                        F[1, i] -= known_dv.T
             if with_jacobians:  # numpy releases the GIL: the chain rule runs in parallel too
                 rows = slice(chunk.start - 1, chunk.stop - 1)
                 chained(F[:, rows], rows, JuT[rows])
                 chained(S[:, rows], rows, JsT[rows])
 
-        list(self.pool.map(work, self.chunks(1, p.T - 1)))
+        self.engines.map(work, 1, p.T - 1)
         if not with_jacobians:
             return Terms(a[1:-1], u, known, s)
         da = np.stack([-d1[:-1], d1[1:] - d2[:-1], d2[1:]], axis=1) / h**2
         return Terms(a[1:-1], u, known, s, JuT.transpose(0, 2, 1), JsT.transpose(0, 2, 1), da)
-
-    @staticmethod
-    def chunks(start: int, stop: int, pieces: int = 4 * THREADS) -> list[range]:
-        """range(start, stop) in contiguous pieces (default: several per thread, to balance
-        the load)."""
-        n = max(1, min(pieces, stop - start))
-        edges = np.linspace(start, stop, n + 1).round().astype(int)
-        return [range(edges[j], edges[j + 1]) for j in range(n) if edges[j + 1] > edges[j]]
 
     def dense(self, C: np.ndarray) -> np.ndarray:
         """A dofwise Jacobian (K, keys, nv, 3) by key and dof group as (K, nv, keys·nv)."""
@@ -273,7 +264,7 @@ class Linearizer:
         return {"bias": bias_walk.cost(self.problem, bias, with_prior=self.prior is None)}
 
     def close(self) -> None:
-        self.pool.shutdown()
+        self.engines.close()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -412,7 +403,7 @@ class BandedSystem:
                             H[a - b][i0 + b : i0 + b + m, rot, rot] += JrT @ Jr[b][:m]
             return diag, lower, g
 
-        shares = list(lin.pool.map(products, lin.chunks(0, K, THREADS)))
+        shares = list(lin.pool.map(products, chunks(0, K, THREADS)))
         diag, lower, g = shares[0]
         for more_diag, more_lower, more_g in shares[1:]:
             diag += more_diag

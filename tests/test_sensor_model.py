@@ -23,10 +23,11 @@ from estimator.factors.imu import without_saturated
 from estimator.knots import averaged_at_knots, samples_between_knots
 from estimator.logs import read_log
 from estimator.logs.measurements import Measurement
-from estimator.problem import KnotModel, accelerations, build_problem, velocities
+from estimator.problem import accelerations, build_problem, velocities
 from estimator.settings import Settings
 from estimator.simulate.sensors import Trajectory
 from estimator.simulate.simulation import scenario_config, simulate
+from physics.knots import KnotEngine
 
 _SENS = mujoco.mjtSensor
 
@@ -58,7 +59,7 @@ def test_sensor_model_reproduces_the_simulated_sensors_at_the_true_trajectory(
     measurements = read_log(log, config).measurements
     problem = build_problem(config, measurements, Settings(), t_ns)
     assert problem.h == pytest.approx(traj.h)
-    knots = KnotModel(problem)
+    engine = KnotEngine(problem.model)
     v = velocities(problem.model, traj.qpos, traj.h)
     a = accelerations(v, traj.h)
     # the knot state is the simulator's state: v_k = qvel_k, a_k = (qvel_{k+1} − qvel_k)/h
@@ -66,7 +67,7 @@ def test_sensor_model_reproduces_the_simulated_sensors_at_the_true_trajectory(
     m = problem.model
     checked: set[str] = set()
     for k in range(1, traj.steps):
-        _, _, s = knots.evaluate(k, traj.qpos[k], v[k], a[k])
+        _, s = engine.inverse(traj.qpos[k], v[k], a[k])
         for name, stream in config.streams.items():
             for element in stream.elements:
                 prefix = f"physfuse/{name}/{element}/"
@@ -183,27 +184,23 @@ def test_position_samples_belong_to_the_knot_interval_they_fall_in():
 def test_samples_between_knots_are_predicted_by_blending_their_two_knots():
     """(1 − α) s_{k−1} + α s_k for vectors; for quaternions q_{k−1} taken to q_k's side (q and
     −q are one rotation) and the blend normalized."""
-    from estimator.smoother import Linearizer
+    from estimator.factors.measurement import between_knots
 
     root = Path(__file__).resolve().parent.parent
     config = load_config(root / "configs" / "humanoid_push.toml")
     measurements = read_log(root / "recordings" / "humanoid_push.mcap", config).measurements
     t_ns = np.arange(5) * 10_000_000 + measurements["mocap_torso"].t_ns[0]
     problem = build_problem(config, measurements, Settings(), t_ns)
-    lin = Linearizer(problem)
-    try:
-        vector = replace(problem.blocks[0], alpha=np.array([1.0, 1.0, 0.25, 0.5, 1.0]))
-        s = np.array([[1.0, 0.0, 0.0], [3.0, 4.0, 0.0], [5.0, 4.0, 2.0]])  # knots 1, 2, 3
-        blend, _ = lin.between_knots(vector, s, None)
-        assert blend == pytest.approx(np.array([[1, 0, 0], [1.5, 1, 0], [4, 4, 1]]))
-        half = np.sqrt(0.5)
-        q = np.array([[1.0, 0, 0, 0], [-half, 0, 0, -half], [0, 0, 0, 1.0]])  # 0°, 90°, 180° on z
-        blend, _ = lin.between_knots(replace(vector, kind="quat"), q, None)
-        assert np.linalg.norm(blend, axis=1) == pytest.approx(1.0)
-        # knot 2: α = 0.25 of the way from 0° to 90°, on q_2's side (−q_1)
-        expected = 0.75 * -q[0] + 0.25 * q[1]
-        assert blend[1] == pytest.approx(expected / np.linalg.norm(expected))
-        # knot 3: halfway from 90° to 180°: 135°
-        assert np.degrees(2 * np.arctan2(abs(blend[2, 3]), abs(blend[2, 0]))) == pytest.approx(135)
-    finally:
-        lin.close()
+    vector = replace(problem.blocks[0], alpha=np.array([1.0, 1.0, 0.25, 0.5, 1.0]))
+    s = np.array([[1.0, 0.0, 0.0], [3.0, 4.0, 0.0], [5.0, 4.0, 2.0]])  # knots 1, 2, 3
+    blend, _ = between_knots(vector, s, None, problem.model.nv)
+    assert blend == pytest.approx(np.array([[1, 0, 0], [1.5, 1, 0], [4, 4, 1]]))
+    half = np.sqrt(0.5)
+    q = np.array([[1.0, 0, 0, 0], [-half, 0, 0, -half], [0, 0, 0, 1.0]])  # 0°, 90°, 180° on z
+    blend, _ = between_knots(replace(vector, kind="quat"), q, None, problem.model.nv)
+    assert np.linalg.norm(blend, axis=1) == pytest.approx(1.0)
+    # knot 2: α = 0.25 of the way from 0° to 90°, on q_2's side (−q_1)
+    expected = 0.75 * -q[0] + 0.25 * q[1]
+    assert blend[1] == pytest.approx(expected / np.linalg.norm(expected))
+    # knot 3: halfway from 90° to 180°: 135°
+    assert np.degrees(2 * np.arctan2(abs(blend[2, 3]), abs(blend[2, 0]))) == pytest.approx(135)
