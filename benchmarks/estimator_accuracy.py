@@ -22,10 +22,10 @@ from dataclasses import replace
 from pathlib import Path
 
 from estimator.config import load_config
-from estimator.logs import read_log
+from estimator.io.logs import read_log
+from estimator.io.state_topics import at_times, read_ground_truth, trajectory_errors
 from estimator.run import estimate, initial_trajectory
 from estimator.settings import CHOICES, Settings
-from estimator.truth import at_times, read_ground_truth, trajectory_errors
 
 ROOT = Path(__file__).resolve().parent.parent
 RECORDINGS = ("humanoid_push", "humanoid_fall", "quadruped_trot", "arm_box", "single_joint")

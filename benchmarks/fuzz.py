@@ -50,7 +50,7 @@ sys.path.insert(0, str(ROOT))
 from estimator.cli import main as physfuse  # noqa: E402
 from estimator.config import Config, load_config  # noqa: E402
 from estimator.errors import PhysfuseError  # noqa: E402
-from estimator.logs import ByteStreamReader, Log, read_log  # noqa: E402
+from estimator.io.logs import ByteStreamReader, Log, read_log  # noqa: E402
 
 ORIGINALS = {"humanoid_push": "humanoid_push", "arm_box": "arm_box"}  # recording → config
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": None}

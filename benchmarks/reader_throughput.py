@@ -34,8 +34,8 @@ sys.path.insert(0, str(ROOT / "tests"))  # the ROS 2 log writer the tests use
 import ros2_logs as rl  # noqa: E402
 
 from estimator.config import Config, load_config  # noqa: E402
-from estimator.logs import ByteStreamReader, read_log  # noqa: E402
-from estimator.logs import ros2_types as t  # noqa: E402
+from estimator.io.logs import ByteStreamReader, read_log  # noqa: E402
+from estimator.io.logs import ros2_types as t  # noqa: E402
 from physics.model import load_model  # noqa: E402
 
 RATES_HZ = {"mocap": 200, "imu": 500, "joint_states": 500, "commands": 100}

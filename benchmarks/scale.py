@@ -157,7 +157,7 @@ def _long_log(out: Path, seconds: float, chunk_s: float) -> dict[str, Any]:
         runs[name] = {"wall_s": time.perf_counter() - start, "status": done.returncode}
         if done.returncode:
             runs[name]["error"] = done.stderr[-500:]
-    from estimator.truth import read_state_topics
+    from estimator.io.state_topics import read_state_topics
 
     one = read_state_topics(out / "one_process" / "estimate.mcap", prefix="/estimate")
     two = read_state_topics(out / "chunks_2_workers" / "estimate.mcap", prefix="/estimate")
@@ -215,7 +215,7 @@ def _killed(out: Path, log: str, after_s: float) -> dict[str, Any]:
         text=True,
         env=env,
     )
-    from estimator.truth import read_state_topics
+    from estimator.io.state_topics import read_state_topics
 
     a = read_state_topics(out / log / "estimate.mcap", prefix="/estimate")
     b = read_state_topics(single / "estimate.mcap", prefix="/estimate")

@@ -29,11 +29,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from estimator.config import load_config  # noqa: E402
-from estimator.logs import read_log  # noqa: E402
+from estimator.io.logs import read_log  # noqa: E402
+from estimator.io.state_topics import at_times, read_ground_truth  # noqa: E402
 from estimator.problem import accelerations, velocities  # noqa: E402
 from estimator.run import estimate  # noqa: E402
 from estimator.settings import Settings  # noqa: E402
-from estimator.truth import at_times, read_ground_truth  # noqa: E402
 
 NEAR = 2  # knots on each side of a join
 

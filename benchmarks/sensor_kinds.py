@@ -111,11 +111,11 @@ def main() -> int:
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     results = {robot: run(robot, args.seconds, args.out) for robot in args.robots}
-    header = f"{'robot':<16} {'variant':<14}" + "".join(f"{m:>14}" for m in (*METRICS, "wall_s"))
-    print(header)
+    columns = (*METRICS, "wall_s")
+    print(f"{'robot':<16} {'variant':<14}" + "".join(f"{m:>{len(m) + 2}}" for m in columns))
     for robot, rows in results.items():
         for variant, row in rows.items():
-            cells = "".join(f"{row[m]:>14.4g}" for m in (*METRICS, "wall_s"))
+            cells = "".join(f"{row[m]:>{len(m) + 2}.4g}" for m in columns)
             print(f"{robot:<16} {variant:<14}{cells}")
     record = {
         "machine": f"{platform.machine()}, {platform.python_version()}",

@@ -31,7 +31,7 @@ import tomlkit
 
 from estimator.config import MOCAP_KINDS, Config
 from estimator.errors import ConfigError, PhysfuseError
-from estimator.logs.measurements import Measurement
+from estimator.io.logs.measurements import Measurement
 from estimator.run import estimate
 from estimator.settings import Settings
 from physics.errors import UnsupportedModelError

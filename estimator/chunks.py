@@ -22,8 +22,8 @@ from estimator.config import load_config
 from estimator.errors import ConfigError, PhysfuseError
 from estimator.estimate import Estimate
 from estimator.fleet import as_task, ray_session
+from estimator.io.logs import Measurement
 from estimator.knots import knot_grid
-from estimator.logs import Measurement
 from estimator.run import Summary, estimate, largest_residuals, samples_within, softness_fitted
 from estimator.settings import Settings
 

@@ -22,7 +22,7 @@ Schema (see `configs/README.md` for a worked example):
     noise = { ... }           # per-kind keys below; omitted keys take the defaults
     max_abs = { ax = 160.0 }  # optional: the largest plausible |value| per component (a
                               # sample beyond is skipped, counted `out_of_bounds`); defaults
-                              # in estimator/logs/samples.py: BOUNDS (10 km, 1000 rad/s, …)
+                              # in estimator/io/logs/samples.py: BOUNDS (10 km, 1000 rad/s, …)
 
     type-specific keys:
       pose          body = "torso" | site = "torso_marker"   (PoseStamped, TransformStamped)
@@ -766,7 +766,7 @@ class _Parser:
     def max_abs(self, raw: Any, key: str, kind: str, field: Any) -> dict[str, float]:
         """{component: bound} of a stream's `max_abs` table (components of its kind)."""
         # (imported here: the reader's modules import this one)
-        from estimator.logs.measurements import STREAM_COMPONENTS
+        from estimator.io.logs.measurements import STREAM_COMPONENTS
 
         table = self.table(raw, key)
         components = (field,) if kind == "command" and isinstance(field, str) else None

@@ -1,7 +1,7 @@
 """Metrics of an estimate against ground truth, and of predictions of a held-out sensor.
 
 Pure functions on arrays (and on `StateTopics`, the arrays of one prefix of the shared topic
-layout); `estimator/evaluate_cmd.py` reads the files and prints the tables.
+layout); `estimator/cli/evaluate.py` reads the files and prints the tables.
 
 Conventions: an estimate sample at t is compared with the truth interpolated linearly to t
 between the two truth samples around it (the truth may be sparser: `--ground-truth-every`);
@@ -18,8 +18,8 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from estimator.io.state_topics import Series, StateTopics, at_times
 from estimator.rotations import rotation_angles
-from estimator.truth import Series, StateTopics, at_times
 from physics.model import weight as model_weight
 
 TRIM_KNOTS = 2

@@ -18,8 +18,8 @@ from dataclasses import replace
 import numpy as np
 
 from estimator.errors import ConfigError, LogError
-from estimator.logs.align import resample
-from estimator.logs.measurements import Measurement
+from estimator.io.logs.align import resample
+from estimator.io.logs.measurements import Measurement
 
 MAX_KNOTS = 50_000_000  # 28 h at 2 ms: more is a clock mismatch, and would not fit in memory
 

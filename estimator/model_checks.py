@@ -20,7 +20,7 @@ from estimator.actuation import (
 )
 from estimator.config import Config
 from estimator.errors import ConfigError
-from estimator.logs.measurements import Measurement
+from estimator.io.logs.measurements import Measurement
 from estimator.settings import Settings, softness_error
 from physics.dynamics import Path as EnginePath
 from physics.dynamics import check_model

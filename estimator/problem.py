@@ -25,7 +25,7 @@ sample at t_{k−1} + α h as (1 − α) s(q_{k−1}) + α s(q_k), a factor of k
 accelerations are averaged over the Euler step they belong to (gyro over (t_k − h, t_k], the
 step v_k moves through; accelerometer and force/torque over [t_k, t_k + h), where a_k acts),
 σ/√n; saturated IMU samples (at the configured range) left out. Rows are whitened here;
-`estimator.smoother` weights them robustly (Huber) and solves.
+`estimator.factors` weights them robustly and `estimator.solver` solves.
 """
 
 from __future__ import annotations
@@ -41,8 +41,8 @@ from estimator.actuation import check_commanded, commanded_force, moment_dense
 from estimator.config import Config
 from estimator.factors import UNITS, Grid, SensorBlock
 from estimator.factors.base import MODEL_ERROR
+from estimator.io.logs.measurements import Measurement
 from estimator.knots import held_at_knots, knot_grid
-from estimator.logs.measurements import Measurement
 from estimator.rotations import jr_inverse, quat_log_between
 from estimator.settings import Settings, softness_error
 from physics.errors import UnsupportedModelError

@@ -18,8 +18,9 @@ from estimator.actuation import moment_dense
 from estimator.config import Config
 from estimator.contact_forces import balanced_constraints
 from estimator.estimate import Estimate
+from estimator.factors.marginal_prior import MarginalPrior
+from estimator.io.logs.measurements import Measurement
 from estimator.knots import interpolated_at_knots, knot_grid
-from estimator.logs.measurements import Measurement
 from estimator.problem import (
     MODEL_ERROR,
     Problem,
@@ -31,14 +32,10 @@ from estimator.problem import (
     velocities,
 )
 from estimator.settings import Settings
-from estimator.smoother import (
-    Linearizer,
-    MarginalPrior,
-    fit_softness,
-    follow,
-    solve_window,
-    with_covariance,
-)
+from estimator.solver.covariance import with_covariance
+from estimator.solver.linearize import Linearizer
+from estimator.solver.softness_fit import fit_softness
+from estimator.solver.window import follow, solve_window
 from physics.dynamics import make_dynamics
 from physics.model import weight as model_weight
 
@@ -275,9 +272,9 @@ def _fit_softness(
     compiled: tuple[mujoco.MjModel, dict[str, list[str]]],
 ) -> tuple[Settings, dict[str, float]]:
     """fit_softness = "first_window": the factors on the model's own ε and κ that the physics
-    and the mocap agree on over the knots t_ns (the log's first fit_softness_s: `smoother.
-    fit_softness`), folded into the settings every window then takes; the covariances
-    consider their posterior σ."""
+    and the mocap agree on over the knots t_ns (the log's first fit_softness_s:
+    `solver.softness_fit.fit_softness`), folded into the settings every window then takes;
+    the covariances consider their posterior σ."""
     window = {name: samples_within(m, t_ns[0], t_ns[-1]) for name, m in measurements.items()}
     problem = build_problem(config, window, settings, t_ns, compiled)
     fit, _ = fit_softness(problem, qpos0[: len(t_ns)], np.zeros((problem.T, problem.nb)))

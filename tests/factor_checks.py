@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from estimator.problem import Problem, retract
-from estimator.smoother import Linearizer
+from estimator.solver.linearize import Linearizer
 
 
 def jacobian_error(

@@ -29,8 +29,8 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Rosbag2Writer
 from ruamel.yaml import YAML
 
-from estimator.logs import ros2_types as t
-from estimator.logs.ros2_types import message_definition, typestore
+from estimator.io.logs import ros2_types as t
+from estimator.io.logs.ros2_types import message_definition, typestore
 
 NS = 1_000_000_000
 T0 = 1_700_000_000 * NS  # a realistic epoch for header stamps and log times

@@ -13,8 +13,8 @@ from model_variants import config_for_model, quadruped_with_actuators
 from estimator.actuation import actuator_kind, commanded_force
 from estimator.cli import main
 from estimator.config import load_config
+from estimator.io.logs import read_log
 from estimator.knots import knot_grid
-from estimator.logs import read_log
 from estimator.problem import build_problem, u_known_along
 from estimator.run import initial_trajectory
 from estimator.settings import Settings

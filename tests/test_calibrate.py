@@ -12,7 +12,7 @@ from mcap.reader import make_reader
 from estimator.calibrate import calibrate, default_grid, parabola
 from estimator.cli import main
 from estimator.config import load_config
-from estimator.logs import read_log
+from estimator.io.logs import read_log
 from estimator.settings import Settings
 from physics.softness import Softness
 

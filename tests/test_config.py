@@ -83,8 +83,11 @@ def test_the_readme_example_is_a_valid_config(tmp_path):
     readme = (Path(__file__).parents[1] / "configs" / "README.md").read_text()
     (tmp_path / "example.toml").write_text(readme.split("```toml\n")[1].split("```")[0])
     config = load_config(tmp_path / "example.toml")
-    assert len(config.streams) == 9
+    assert len(config.streams) == 10
     assert len(config.streams["joints"].elements) == 21 == len(config.streams["command"].elements)
+    feet = config.streams["feet"]
+    assert feet.kind == "contact_flags" and feet.elements == ("right_foot", "left_foot")
+    assert feet.sources == ("0", "1") and feet.stamp == "log"
 
 
 def test_other_sections_pass_through_when_declared(tmp_path):

@@ -12,12 +12,12 @@ import pytest
 from estimator.config import load_config
 from estimator.contact_forces import balanced_constraints, contact_jacobian, project_to_cone
 from estimator.errors import ConfigError
-from estimator.logs import read_log
+from estimator.io.logs import read_log
+from estimator.io.mcap_writer import contact_wrenches
+from estimator.io.state_topics import at_times, read_state_topics
 from estimator.problem import build_problem
 from estimator.run import collect_estimate, estimate
 from estimator.settings import Settings
-from estimator.simulate.writer import contact_wrenches
-from estimator.truth import at_times, read_state_topics
 from physics.dynamics import make_dynamics
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -1,5 +1,5 @@
 """Covariances that hold on an imperfect model: rows σ scaled to their residuals, and the
-model's uncertain parameters considered (estimator.smoother.honest, consider_variance)."""
+model's uncertain parameters considered (estimator.solver.covariance: honest, consider_variance)."""
 
 from __future__ import annotations
 
@@ -10,15 +10,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from estimator import smoother
 from estimator.config import load_config
 from estimator.factors.base import Block
+from estimator.io.logs import read_log
 from estimator.knots import knot_grid
-from estimator.logs import read_log
 from estimator.problem import build_problem
 from estimator.run import initial_trajectory
 from estimator.settings import Settings
-from estimator.smoother import honest, solve_window
+from estimator.solver import covariance
+from estimator.solver.banded import LAMBDA_MIN
+from estimator.solver.covariance import honest
+from estimator.solver.window import solve_window
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -52,7 +54,7 @@ def _solved_and_moved(robot: str, h: float, knots: slice, step: float):
     qpos = initial_trajectory(problem.model, log.measurements, t_ns)
     solved = solve_window(problem, qpos, np.zeros((problem.T, problem.nb)), covariance=False)
     model = copy.deepcopy(problem.model)
-    smoother._scaled_timeconst(model, 1.0 + step)
+    covariance._scaled_timeconst(model, 1.0 + step)
     moved = solve_window(replace(problem, model=model), solved.qpos, solved.bias, covariance=False)
     return problem, solved, moved
 
@@ -65,7 +67,7 @@ def test_considered_softness_predicts_how_far_a_re_solved_estimate_moves():
     problem, solved, moved = _solved_and_moved("quadruped_trot", 0.005, slice(100, 180), step)
     actual = np.sqrt(np.mean((moved.qpos[:, 2] - solved.qpos[:, 2]) ** 2))  # RMS over the window
     only_kappa = replace(problem, settings=replace(problem.settings, model_softness_std=step))
-    variance = smoother.consider_variance(only_kappa, solved, ("softness_kappa",))
+    variance = covariance.consider_variance(only_kappa, solved, ("softness_kappa",))
     predicted = np.sqrt(variance[:, 2])
     assert np.all(predicted == predicted[0])  # the window's RMS, at every knot
     assert actual > 2e-5  # it moves: tens of micrometres
@@ -80,13 +82,13 @@ def test_a_force_sensor_predicted_through_the_contacts_enters_the_sensitivity():
     step, box = 0.02, slice(7, 10)
     problem, solved, moved = _solved_and_moved("arm_box", 0.002, slice(400, 500), step)
     actual = np.sqrt(np.mean(np.sum((moved.qpos[:, box] - solved.qpos[:, box]) ** 2, axis=1)))
-    at = smoother._rows_at(problem, problem.model, solved)
+    at = covariance.rows_at(problem, problem.model, solved)
     system = solved.solved_system
-    dr, _, S = smoother._parameter_sensitivity(problem, solved, system, "softness_kappa", at)
+    dr, _, S = covariance.parameter_sensitivity(problem, solved, system, "softness_kappa", at)
     predicted = step * np.sqrt(np.mean(np.sum(S[:, box] ** 2, axis=1)))
-    physics_only = smoother.key_gradient(problem, solved.blocks[:1], dr[:1])
+    physics_only = covariance.key_gradient(problem, solved.blocks[:1], dr[:1])
     s, ab = system.scaled_band()
-    S_physics = replace(system, g=physics_only).damped_step(s, ab, smoother.LAMBDA_MIN)
+    S_physics = replace(system, g=physics_only).damped_step(s, ab, LAMBDA_MIN)
     predicted_physics = step * np.sqrt(np.mean(np.sum(S_physics[:, box] ** 2, axis=1)))
     assert actual > 2e-6  # micrometres
     assert actual / 1.5 < predicted < 1.5 * actual

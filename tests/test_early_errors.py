@@ -13,10 +13,10 @@ import ros2_logs as rl
 
 from estimator.calibrate import config_with
 from estimator.cli import main
+from estimator.cli.evaluate import shared_states
 from estimator.config import load_config
 from estimator.errors import ConfigError, PhysfuseError
-from estimator.evaluate_cmd import shared_states
-from estimator.truth import Series, StateTopics
+from estimator.io.state_topics import Series, StateTopics
 
 ROOT = Path(__file__).parents[1]
 ELLIPTIC = '<option cone="elliptic"/>'  # (MuJoCo's default cone is pyramidal)

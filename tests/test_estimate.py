@@ -14,13 +14,14 @@ from mcap_ros2.reader import read_ros2_messages
 
 from estimator.cli import main
 from estimator.config import load_config
+from estimator.io.logs import Measurement, read_log
+from estimator.io.state_topics import at_times, read_ground_truth
 from estimator.knots import knot_grid
-from estimator.logs import Measurement, read_log
 from estimator.problem import build_problem
 from estimator.run import collect_estimate, initial_trajectory
 from estimator.settings import Settings
-from estimator.smoother import BandedSystem, Linearizer
-from estimator.truth import at_times, read_ground_truth
+from estimator.solver.banded import BandedSystem
+from estimator.solver.linearize import Linearizer
 
 ROOT = Path(__file__).resolve().parent.parent
 

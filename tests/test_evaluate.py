@@ -24,8 +24,8 @@ from estimator.evaluate import (
     rmse,
     within,
 )
+from estimator.io.state_topics import Series, StateTopics
 from estimator.rotations import rotation_angles
-from estimator.truth import Series, StateTopics
 from physics.model import load_model
 
 MS = 1_000_000

@@ -14,11 +14,11 @@ import pytest
 from estimator.baselines.filters import TangentChart, filter_estimate
 from estimator.config import Config, load_config
 from estimator.errors import ConfigError
-from estimator.logs import read_log
-from estimator.logs.measurements import Measurement
+from estimator.io.logs import read_log
+from estimator.io.logs.measurements import Measurement
+from estimator.io.state_topics import at_times, read_ground_truth, trajectory_errors
 from estimator.run import initial_trajectory
 from estimator.settings import Settings
-from estimator.truth import at_times, read_ground_truth, trajectory_errors
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -19,7 +19,7 @@ import pytest
 
 from estimator.errors import ConfigError
 from estimator.fleet import expand_logs, output_names, task_processes
-from estimator.truth import read_state_topics
+from estimator.io.state_topics import read_state_topics
 
 ROOT = Path(__file__).resolve().parent.parent
 PHYSFUSE = [sys.executable, "-m", "estimator.cli"]

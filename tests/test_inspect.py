@@ -8,7 +8,7 @@ import pytest
 import ros2_logs as rl
 
 from estimator.cli import main
-from estimator.logs import BadSampleCounts
+from estimator.io.logs import BadSampleCounts
 
 DURATION = 0.5
 COUNTS = rl.sample_counts(DURATION)

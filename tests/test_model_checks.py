@@ -14,8 +14,8 @@ from model_variants import config_for_model, quadruped_with_actuators
 
 from estimator.cli import main
 from estimator.config import load_config
+from estimator.io.logs import read_log
 from estimator.knots import knot_grid
-from estimator.logs import read_log
 from estimator.model_checks import resting_penetration
 from estimator.problem import build_problem, dof_names, joint_name, model_with_sensors
 from estimator.settings import Settings

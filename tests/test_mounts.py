@@ -12,12 +12,12 @@ import tomlkit
 from estimator.cli import main
 from estimator.config import load_config
 from estimator.errors import ConfigError
+from estimator.io.logs import read_log
 from estimator.knots import knot_grid
-from estimator.logs import read_log
 from estimator.problem import build_problem
 from estimator.run import initial_trajectory
 from estimator.settings import Settings
-from estimator.smoother import Linearizer
+from estimator.solver.linearize import Linearizer
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "configs" / "quadruped_trot.toml"

@@ -1,4 +1,4 @@
-"""Outputs whole or not at all, and every way a run stops is one line (estimator/outputs.py).
+"""Outputs whole or not at all, and every way a run stops is one line (estimator/io/outputs.py).
 
 Real `physfuse` processes on the smallest recording (single_joint, 3 s, `--method raw`: about
 2 s a run, most of it start-up), killed with SIGKILL and SIGINT while they read, estimate and
@@ -23,9 +23,9 @@ import rerun as rr
 from mcap.reader import make_reader
 from mcap.writer import Writer
 
-from estimator import outputs
 from estimator.cli import main
-from estimator.outputs import OutputFile, OutputFolder
+from estimator.io import outputs
+from estimator.io.outputs import OutputFile, OutputFolder
 
 ROOT = Path(__file__).resolve().parents[1]
 LOG = ROOT / "recordings" / "single_joint.mcap"

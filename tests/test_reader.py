@@ -13,8 +13,8 @@ from mcap.writer import Writer as McapWriter
 
 from estimator.config import load_config
 from estimator.errors import LogError, MissingTopicError
-from estimator.logs import read_log, resample, time_grid
-from estimator.logs import ros2_types as t
+from estimator.io.logs import read_log, resample, time_grid
+from estimator.io.logs import ros2_types as t
 
 DURATION = 0.5
 COUNTS = rl.sample_counts(DURATION)

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from estimator.config import load_config
+from estimator.io.logs import read_log
 from estimator.knots import knot_grid
-from estimator.logs import read_log
 from estimator.problem import build_problem, dof_names
 from estimator.run import initial_trajectory, largest_residuals, residual_labels, residuals_by_type
 from estimator.settings import Settings

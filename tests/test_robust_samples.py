@@ -8,7 +8,7 @@ import ros2_logs as rl
 
 from estimator.cli import main
 from estimator.config import load_config
-from estimator.logs import ByteStreamReader, read_log
+from estimator.io.logs import ByteStreamReader, read_log
 
 DURATION = 0.5
 IMU = "/imu"
@@ -235,8 +235,8 @@ def test_estimate_uses_the_rest_of_a_log_with_bad_stamps_and_values(tmp_path, ca
 
 def test_streams_on_different_clocks_are_one_line_not_an_allocation():
     from estimator.errors import LogError
+    from estimator.io.logs.measurements import BadSampleCounts, Measurement
     from estimator.knots import knot_grid
-    from estimator.logs.measurements import BadSampleCounts, Measurement
 
     def stream(name, t0_ns):
         t = t0_ns + np.arange(10) * 2_000_000

@@ -29,8 +29,8 @@ from mcap.writer import Writer as McapWriter
 
 from estimator.config import Config, load_config
 from estimator.errors import LogError
-from estimator.logs import ByteStreamReader, Log, LostData, read_log
-from estimator.logs.source import LogSource, open_log, open_stream
+from estimator.io.logs import ByteStreamReader, Log, LostData, read_log
+from estimator.io.logs.source import LogSource, open_log, open_stream
 
 DURATION = 0.5
 CHUNK_SIZE = 64_000  # the sample recording in 4 chunks
@@ -430,7 +430,7 @@ def test_g_stdin_dash_is_read_as_a_stream(rec, monkeypatch):
 
 def test_g_real_stdin_in_a_subprocess(rec):
     code = (
-        "from estimator.logs import read_log; log = read_log('-'); "
+        "from estimator.io.logs import read_log; log = read_log('-'); "
         "print(sum(t.count for t in log.topics.values()), len(log.warnings))"
     )
     out = subprocess.run(

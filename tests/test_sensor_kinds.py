@@ -13,8 +13,8 @@ from factor_checks import jacobian_error
 from estimator.cli import main
 from estimator.config import load_config
 from estimator.errors import ConfigError
+from estimator.io.logs import read_log
 from estimator.knots import knot_grid
-from estimator.logs import read_log
 from estimator.problem import build_problem
 from estimator.run import residual_labels, residuals_by_type
 from estimator.settings import Settings

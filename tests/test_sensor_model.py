@@ -20,9 +20,9 @@ import pytest
 
 from estimator.config import load_config
 from estimator.factors.imu import without_saturated
+from estimator.io.logs import read_log
+from estimator.io.logs.measurements import Measurement
 from estimator.knots import averaged_at_knots, samples_between_knots
-from estimator.logs import read_log
-from estimator.logs.measurements import Measurement
 from estimator.problem import accelerations, build_problem, velocities
 from estimator.settings import Settings
 from estimator.simulate.sensors import Trajectory
@@ -114,8 +114,8 @@ def _simulated(traj: Trajectory, k: int, kind: mujoco.mjtSensor, element: str) -
 
 
 def _imu_measurement(t_ns: np.ndarray, values: np.ndarray) -> Measurement:
-    from estimator.logs.decode import IMU
-    from estimator.logs.measurements import BadSampleCounts
+    from estimator.io.logs.decode import IMU
+    from estimator.io.logs.measurements import BadSampleCounts
 
     return Measurement(
         "imu", "imu", "/imu", "site", ("imu",), IMU, t_ns, t_ns, values, BadSampleCounts()

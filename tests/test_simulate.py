@@ -25,8 +25,9 @@ from mcap_ros2.decoder import DecoderFactory
 
 from estimator.cli import main
 from estimator.config import load_config
-from estimator.logs import read_log
-from estimator.logs.ros2_types import CONTACT_ARRAY_MSG, CONTACT_MSG, message_definition
+from estimator.io.logs import read_log
+from estimator.io.logs.ros2_types import CONTACT_ARRAY_MSG, CONTACT_MSG, message_definition
+from estimator.io.mcap_writer import Ros2Writer
 from estimator.rotations import quat_mul
 from estimator.simulate import (
     SCENARIOS,
@@ -50,7 +51,6 @@ from estimator.simulate.sensors import (
     MocapNoise,
     MocapPoses,
 )
-from estimator.simulate.writer import Ros2Writer
 from physics.dynamics import make_dynamics
 from physics.model import load_model
 

@@ -20,11 +20,11 @@ import pytest
 from estimator.cli import main
 from estimator.config import load_config
 from estimator.evaluate import compare_states
+from estimator.io.mcap_writer import imu_bias_message
+from estimator.io.state_topics import read_metadata, read_state_topics
 from estimator.simulate import Ros2Writer, SimulationResult, simulate
 from estimator.simulate.mismatch import Mismatch
 from estimator.simulate.model_scenario import model_scenario
-from estimator.simulate.writer import imu_bias_message
-from estimator.truth import read_metadata, read_state_topics
 from physics.model import load_model
 from physics.softness import Softness
 

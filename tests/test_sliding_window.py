@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from estimator.config import load_config
-from estimator.logs import read_log
+from estimator.io.logs import read_log
 from estimator.run import estimate
 from estimator.settings import Settings
 

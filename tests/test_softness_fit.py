@@ -1,5 +1,5 @@
 """fit_softness: the physics and the mocap together fit factors on the model's own contact
-softness (estimator.smoother.fit_softness)."""
+softness (estimator.solver.softness_fit)."""
 
 from __future__ import annotations
 
@@ -8,13 +8,14 @@ from pathlib import Path
 import numpy as np
 
 from estimator.config import load_config
+from estimator.io.logs import read_log
+from estimator.io.state_topics import at_times, read_ground_truth, read_metadata
 from estimator.knots import knot_grid
-from estimator.logs import read_log
 from estimator.problem import build_problem
 from estimator.run import initial_trajectory
 from estimator.settings import Settings
-from estimator.smoother import fit_softness, solve_window
-from estimator.truth import at_times, read_ground_truth, read_metadata
+from estimator.solver.softness_fit import fit_softness
+from estimator.solver.window import solve_window
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -11,7 +11,7 @@ import ros2_logs as rl
 
 from estimator.config import load_config
 from estimator.errors import LogError, MissingTopicError
-from estimator.logs import ByteStreamReader, read_log
+from estimator.io.logs import ByteStreamReader, read_log
 
 DURATION = 0.3
 

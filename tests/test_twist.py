@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from estimator.simulate.writer import body_twist
+from estimator.io.mcap_writer import body_twist
 
 ROOT = Path(__file__).resolve().parent.parent
 

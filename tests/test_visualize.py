@@ -3,7 +3,7 @@
 The estimate is a 1 s MuJoCo simulation of the humanoid collapsing from its "home" keyframe
 (feet on the floor, then hands, knees and hips), with the analytic inverse's forces and
 impulses at every knot; the measurements come from a real ROS 2 MCAP log read by
-`estimator.logs.read_log`.
+`estimator.io.logs.read_log`.
 """
 
 from __future__ import annotations
@@ -21,11 +21,11 @@ import pytest
 import rerun as rr
 import ros2_logs as rl
 
-from estimator import visualize
 from estimator.config import load_config
 from estimator.estimate import Estimate
-from estimator.logs import read_log
-from estimator.logs import ros2_types as t
+from estimator.io import rerun as visualize
+from estimator.io.logs import read_log
+from estimator.io.logs import ros2_types as t
 from physics.cone import Branch
 from physics.dynamics import make_dynamics
 from physics.model import load_model

@@ -45,8 +45,8 @@ from estimator.config import Config
 from estimator.errors import ConfigError
 from estimator.estimate import Estimate
 from estimator.factors import SensorBlock
+from estimator.io.logs.measurements import Measurement
 from estimator.knots import knot_grid
-from estimator.logs.measurements import Measurement
 from estimator.problem import Problem, build_problem, model_with_sensors, u_known_along
 from estimator.rotations import quat_errors, quat_exp, quat_log_between, quat_mul
 from estimator.run import Summary, finish, initial_trajectory

@@ -4,10 +4,10 @@ A sensor kind's unit (`pose`, `markers`, `imu`, `joint_state`, `wrench`, `contac
 adds the MuJoCo sensors that predict its measurements, maps a stream's samples onto the
 knots as whitened residual rows (`SensorBlock`), and names its channels for held-out
 validation; `base` says what each returns. Adding a kind: a unit here, its entry in `UNITS`,
-its config keys (`estimator.config`) and its message type (`estimator.logs`).
+its config keys (`estimator.config`) and its message type (`estimator.io.logs`).
 
 The physics factor, the motion priors and the bias random walks are the smoother's own
-(`estimator.smoother.Linearizer`).
+(`estimator.solver.linearize.Linearizer`).
 """
 
 from __future__ import annotations

@@ -25,8 +25,8 @@ import mujoco
 import numpy as np
 
 from estimator.config import StreamConfig
+from estimator.io.logs.measurements import Measurement
 from estimator.knots import interpolated_at_knots, samples_between_knots
-from estimator.logs.measurements import Measurement
 from estimator.settings import Settings
 
 _OBJ = mujoco.mjtObj

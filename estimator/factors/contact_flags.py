@@ -26,8 +26,8 @@ from estimator.factors.base import (
     StreamFactors,
     labels,
 )
+from estimator.io.logs.measurements import Measurement
 from estimator.knots import held_at_knots
-from estimator.logs.measurements import Measurement
 
 _OBJ = mujoco.mjtObj
 _SENS = mujoco.mjtSensor

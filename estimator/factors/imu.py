@@ -24,8 +24,8 @@ from estimator.factors.base import (
     add_element_sensors,
     biased_pair,
 )
+from estimator.io.logs.measurements import Measurement
 from estimator.knots import averaged_at_knots
-from estimator.logs.measurements import Measurement
 
 _SENS = mujoco.mjtSensor
 

@@ -23,8 +23,8 @@ from estimator.factors.base import (
     StreamFactors,
     add_element_sensors,
 )
+from estimator.io.logs.measurements import Measurement
 from estimator.knots import averaged_at_knots, held_at_knots
-from estimator.logs.measurements import Measurement
 
 _SENS = mujoco.mjtSensor
 _LATE = 0.1  # of a knot step: how late a velocity sample may be stamped and still be its knot's

@@ -15,7 +15,7 @@ from estimator.factors.base import (
     labels,
     vector_residuals,
 )
-from estimator.logs.measurements import Measurement
+from estimator.io.logs.measurements import Measurement
 
 
 def add_sensors(spec: mujoco.MjSpec, stream: StreamConfig) -> list[str]:

@@ -18,7 +18,7 @@ from estimator.factors.base import (
     add_element_sensors,
     labels,
 )
-from estimator.logs.measurements import Measurement
+from estimator.io.logs.measurements import Measurement
 from estimator.rotations import quat_errors
 
 _SENS = mujoco.mjtSensor

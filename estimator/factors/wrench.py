@@ -16,8 +16,8 @@ from estimator.factors.base import (
     biased_pair,
     vector_residuals,
 )
+from estimator.io.logs.measurements import Measurement
 from estimator.knots import averaged_at_knots
-from estimator.logs.measurements import Measurement
 
 _SENS = mujoco.mjtSensor
 

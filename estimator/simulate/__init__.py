@@ -11,6 +11,10 @@ writer and the `/ground_truth` = `/estimate` topic layout), `simulation` (the ru
 `model_scenario` (the scenario of any MJCF model: `physfuse simulate --model`).
 """
 
+from estimator.io.mcap_writer import Ros2Writer as Ros2Writer
+from estimator.io.mcap_writer import StateLayout as StateLayout
+from estimator.io.mcap_writer import state_data as state_data
+from estimator.io.mcap_writer import write_state as write_state
 from estimator.simulate.errors import SimulationError as SimulationError
 from estimator.simulate.mismatch import Mismatch as Mismatch
 from estimator.simulate.mismatch import MismatchRecord as MismatchRecord
@@ -22,7 +26,3 @@ from estimator.simulate.simulation import GROUND_TRUTH as GROUND_TRUTH
 from estimator.simulate.simulation import SimulationResult as SimulationResult
 from estimator.simulate.simulation import scenario_config as scenario_config
 from estimator.simulate.simulation import simulate as simulate
-from estimator.simulate.writer import Ros2Writer as Ros2Writer
-from estimator.simulate.writer import StateLayout as StateLayout
-from estimator.simulate.writer import state_data as state_data
-from estimator.simulate.writer import write_state as write_state

@@ -41,6 +41,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from estimator.io.mcap_writer import Message
 from estimator.simulate.errors import SimulationError
 from estimator.simulate.mismatch import SignedMismatch
 from estimator.simulate.scenarios import Scenario
@@ -53,7 +54,6 @@ from estimator.simulate.sensors import (
     SensorOutput,
     Trajectory,
 )
-from estimator.simulate.writer import Message
 
 CONDITIONS: Mapping[str, str] = {
     "nominal": "sensor noise, biases and latency, default model mismatch; no mocap dropouts "

@@ -41,10 +41,8 @@ from typing import Any, Protocol
 import mujoco
 import numpy as np
 
-from estimator.logs import ros2_types
-from estimator.rotations import quat_exp, quat_mul, quat_slerp, rotate_inverse
-from estimator.simulate.errors import SimulationError
-from estimator.simulate.writer import (
+from estimator.io.logs import ros2_types
+from estimator.io.mcap_writer import (
     RELIABLE_QOS,
     SENSOR_QOS,
     Message,
@@ -53,6 +51,8 @@ from estimator.simulate.writer import (
     quaternion,
     vector3,
 )
+from estimator.rotations import quat_exp, quat_mul, quat_slerp, rotate_inverse
+from estimator.simulate.errors import SimulationError
 
 NS = 1_000_000_000
 _IDENTITY_WXYZ = (1.0, 0.0, 0.0, 0.0)

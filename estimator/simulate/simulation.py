@@ -38,13 +38,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
-from estimator.simulate.conditions import CONDITIONS, with_condition
-from estimator.simulate.controllers import Push, apply_pushes
-from estimator.simulate.errors import SimulationError
-from estimator.simulate.mismatch import Mismatch, MismatchRecord
-from estimator.simulate.scenarios import Controller, Scenario, get_scenario
-from estimator.simulate.sensors import NS, Imu, Trajectory, site_ids
-from estimator.simulate.writer import (
+from estimator.io.mcap_writer import (
     Message,
     Ros2Writer,
     StateLayout,
@@ -52,6 +46,12 @@ from estimator.simulate.writer import (
     state_data,
     state_messages,
 )
+from estimator.simulate.conditions import CONDITIONS, with_condition
+from estimator.simulate.controllers import Push, apply_pushes
+from estimator.simulate.errors import SimulationError
+from estimator.simulate.mismatch import Mismatch, MismatchRecord
+from estimator.simulate.scenarios import Controller, Scenario, get_scenario
+from estimator.simulate.sensors import NS, Imu, Trajectory, site_ids
 from physics.dynamics import Dynamics, make_dynamics
 from physics.model import load_model, model_path
 from physics.softness import Softness

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from estimator.logs import ros2_types as t
+from estimator.io.logs import ros2_types as t
 
 POSE = ("px", "py", "pz", "qw", "qx", "qy", "qz")
 POINT = ("px", "py", "pz")

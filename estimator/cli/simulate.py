@@ -5,7 +5,7 @@ keyframe (estimator/simulate/model_scenario.py, docs/simulate_model.md).
 Runs a bundled model under a controller (with a seeded model mismatch) and writes the MCAP
 a real robot could have produced — rosbag2 layout: profile `ros2`, `ros2msg` schemas, `cdr`
 messages, QoS metadata — with imperfect sensor topics and the true state under
-`/ground_truth/...` (see estimator/simulate/writer.py for the layout). `--config-out` writes
+`/ground_truth/...` (see estimator/io/mcap_writer.py for the layout). `--config-out` writes
 the config that maps the sensor topics onto the model. `--condition` simulates the scenario
 under one of the conditions of estimator/simulate/conditions.py (nominal, occlusion, outliers,
 mismatch, no_commands). The same seed gives the same file.
@@ -19,7 +19,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from estimator.outputs import OutputFile
+from estimator.io.outputs import OutputFile
 from estimator.simulate import SCENARIOS, SimulationError, scenario_config, simulate
 from estimator.simulate.conditions import CONDITIONS, with_condition
 from estimator.simulate.model_scenario import EXCITATION_RAD, model_scenario

@@ -42,9 +42,11 @@ from estimator.evaluate import (
     json_ready,
 )
 from estimator.factors import UNITS
-from estimator.logs import Measurement, read_log
+from estimator.io.logs import Measurement, read_log
+from estimator.io.mcap_writer import body_twist, state_data
+from estimator.io.outputs import OutputFile
+from estimator.io.state_topics import PREFIX, Series, StateTopics, read_metadata, read_state_topics
 from estimator.model_checks import check_for_estimate
-from estimator.outputs import OutputFile
 from estimator.problem import (
     accelerations,
     build_problem,
@@ -53,8 +55,6 @@ from estimator.problem import (
 )
 from estimator.run import estimate, initial_trajectory
 from estimator.settings import Settings
-from estimator.simulate.writer import body_twist, state_data
-from estimator.truth import PREFIX, Series, StateTopics, read_metadata, read_state_topics
 from physics.errors import PhysicsError
 from physics.knots import KnotEngine
 from physics.model import load_model

@@ -8,7 +8,7 @@ Profiles the mocap part of the physics estimate's cost over the setting
 DIR/calibration.json and DIR/calibration.png; with --config-out, CONFIG with the value set in
 its [estimator] table, ready for `physfuse estimate`. DIR (and --config-out) are checked
 before the first estimate, and the outputs put in place only when the run completes
-(estimator/outputs.py).
+(estimator/io/outputs.py).
 """
 
 from __future__ import annotations
@@ -35,9 +35,9 @@ from estimator.calibrate import (
 from estimator.config import Config, load_config
 from estimator.errors import PhysfuseError
 from estimator.evaluate import json_ready
-from estimator.logs import read_log
+from estimator.io.logs import read_log
+from estimator.io.outputs import OutputFile, OutputFolder
 from estimator.model_checks import check_for_estimate
-from estimator.outputs import OutputFile, OutputFolder
 from estimator.run import samples_within
 from estimator.settings import Settings
 

@@ -38,14 +38,21 @@ from typing import Any
 
 import mujoco
 import numpy as np
-from mcap_ros2._dynamic import serialize_dynamic  # as estimator.simulate.writer
+from mcap_ros2._dynamic import serialize_dynamic  # as estimator.io.mcap_writer
 from mcap_ros2.decoder import DecoderFactory
 
 from estimator.config import ARRAY_KINDS, Config, StreamConfig
-from estimator.logs import ros2_types
-from estimator.logs.decode import DECODERS, TRAJECTORY, BadSampleError, Record, non_finite, stamp_ns
-from estimator.logs.measurements import STREAM_COMPONENTS, BadSampleCounts, Sample, TopicStats
-from estimator.logs.source import RawMessage
+from estimator.io.logs import ros2_types
+from estimator.io.logs.decode import (
+    DECODERS,
+    TRAJECTORY,
+    BadSampleError,
+    Record,
+    non_finite,
+    stamp_ns,
+)
+from estimator.io.logs.measurements import STREAM_COMPONENTS, BadSampleCounts, Sample, TopicStats
+from estimator.io.logs.source import RawMessage
 
 _IDENTITY = (1.0, 0.0, 0.0, 0.0)
 # Largest plausible |value| per component: beyond these a value is damage, not physics.

@@ -49,7 +49,7 @@ import rerun.blueprint as rrb
 
 from estimator.errors import PhysfuseError
 from estimator.estimate import Estimate
-from estimator.logs.reader import Log
+from estimator.io.logs.reader import Log
 from estimator.problem import dof_names
 from estimator.rotations import xyzw
 from physics.cone import Branch

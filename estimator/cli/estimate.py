@@ -6,7 +6,7 @@ ADDR` run as a fleet of Ray tasks, DIR/<log name> each (estimator/fleet.py).
 Writes DIR/estimate.mcap (the `/estimate/...` topic layout), DIR/estimate.rrd (Rerun) and
 DIR/summary.json, and prints a summary — with errors against ground truth when the log has
 `/ground_truth/...` topics (a simulated log). DIR is checked before the log is read and the
-three files are put in place together when the run completes (estimator/outputs.py): DIR
+three files are put in place together when the run completes (estimator/io/outputs.py): DIR
 holds one run's set, never parts of two. A viewer that cannot open (--spawn without a
 display, --serve on a busy port) is a warning: the files are written.
 """
@@ -30,23 +30,23 @@ from estimator import chunks, fleet
 from estimator.config import load_config
 from estimator.errors import ConfigError, LogError
 from estimator.estimate import Estimate
-from estimator.logs import Measurement, read_log
-from estimator.model_checks import (
-    check_for_estimate,
-    command_warnings,
-    commands_against_efforts,
-)
-from estimator.outputs import OutputFolder
-from estimator.run import Summary, estimate, initial_trajectory
-from estimator.settings import CHOICES, SETTINGS, Settings
-from estimator.simulate.writer import (
+from estimator.io.logs import Measurement, read_log
+from estimator.io.mcap_writer import (
     Ros2Writer,
     StateLayout,
     imu_bias_message,
     state_data,
     write_state,
 )
-from estimator.truth import at_times, read_ground_truth, trajectory_errors
+from estimator.io.outputs import OutputFolder
+from estimator.io.state_topics import at_times, read_ground_truth, trajectory_errors
+from estimator.model_checks import (
+    check_for_estimate,
+    command_warnings,
+    commands_against_efforts,
+)
+from estimator.run import Summary, estimate, initial_trajectory
+from estimator.settings import CHOICES, SETTINGS, Settings
 
 OUTPUTS = ("estimate.mcap", "estimate.rrd", "summary.json")  # one run's set, written whole
 
@@ -181,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
         accuracy = _accuracy(args.log, model, log.measurements, est)
         lost = [asdict(x) for x in log.lost]
         report = _report(summary, settings, accuracy, out, run_id, skipped, lost)
-        from estimator.visualize import (
+        from estimator.io.rerun import (
             ViewerError,
             serve_until_interrupted,
             show_recording,

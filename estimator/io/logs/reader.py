@@ -18,15 +18,15 @@ from pathlib import Path
 
 from estimator.config import Config
 from estimator.errors import MissingTopicError
-from estimator.logs.measurements import (
+from estimator.io.logs.measurements import (
     BadSampleCounts,
     Measurement,
     Sample,
     TopicStats,
     collect,
 )
-from estimator.logs.samples import SampleExtractor
-from estimator.logs.source import LogSource, LostData, open_log
+from estimator.io.logs.samples import SampleExtractor
+from estimator.io.logs.source import LogSource, LostData, open_log
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """Robot states in a log's shared topic layout — the ground truth of `physfuse simulate`
 (`/ground_truth/...`) or an estimate (`/estimate/...`) — and errors of a trajectory against it.
-The layout is described in `estimator/simulate/writer.py`."""
+The layout is described in `estimator/io/mcap_writer.py`."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from estimator.errors import LogError
-from estimator.logs.source import RawMessage, open_log
+from estimator.io.logs.source import RawMessage, open_log
 
 PREFIX = "/ground_truth"
 

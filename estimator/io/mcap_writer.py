@@ -53,8 +53,8 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_ros2._dynamic import EncoderFunction, serialize_dynamic
 
-from estimator.logs import ros2_types
-from estimator.logs.ros2_types import CONTACT_ARRAY
+from estimator.io.logs import ros2_types
+from estimator.io.logs.ros2_types import CONTACT_ARRAY
 from physics.result import Constraints
 
 NS = 1_000_000_000

@@ -14,15 +14,15 @@ from physics.errors import PhysicsError
 # name -> (module path, help); modules expose `add_arguments(parser)` and `run(args) -> int`.
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "reproduce": ("physics.reproduce.cli", "reproduce the paper's figures (benchmarks)"),
-    "inspect": ("estimator.inspect_cmd", "topics, rates, gaps and bad samples of a robot log"),
-    "simulate": ("estimator.simulate_cmd", "simulate a robot log with ground truth (MCAP)"),
-    "estimate": ("estimator.estimate_cmd", "smooth a robot log into motion and contact forces"),
+    "inspect": ("estimator.cli.inspect", "topics, rates, gaps and bad samples of a robot log"),
+    "simulate": ("estimator.cli.simulate", "simulate a robot log with ground truth (MCAP)"),
+    "estimate": ("estimator.cli.estimate", "smooth a robot log into motion and contact forces"),
     "calibrate": (
-        "estimator.calibrate_cmd",
+        "estimator.cli.calibrate",
         "fit the model's contact softness to a log (by the mocap cost of the estimate)",
     ),
     "evaluate": (
-        "estimator.evaluate_cmd",
+        "estimator.cli.evaluate",
         "errors of an estimate against ground truth, or of a held-out sensor's prediction",
     ),
 }

@@ -63,7 +63,7 @@ from ruamel.yaml import YAML
 from ruamel.yaml.error import YAMLError
 
 from estimator.errors import LogError
-from estimator.logs.ros2_types import normalize_type
+from estimator.io.logs.ros2_types import normalize_type
 
 RECORD_SIZE_LIMIT = 1 << 30  # the longest record a stream may send, the largest chunk inflated
 

@@ -16,7 +16,7 @@ from collections.abc import Iterable, Mapping
 
 import numpy as np
 
-from estimator.logs.measurements import Measurement
+from estimator.io.logs.measurements import Measurement
 
 # Stream kinds whose samples hold until the next one instead of being interpolated.
 HOLD_KINDS = ("command",)

@@ -14,7 +14,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from estimator.config import Config, StreamConfig
-from estimator.logs.decode import IMU, JOINT, POINT, POSE, SCALAR, WRENCH
+from estimator.io.logs.decode import IMU, JOINT, POINT, POSE, SCALAR, WRENCH
 
 # Components (the K axis) of each stream kind's values.
 STREAM_COMPONENTS: Mapping[str, tuple[str, ...]] = {

@@ -22,10 +22,10 @@ from collections.abc import Iterator, Mapping
 from typing import IO
 
 from estimator.config import Config
-from estimator.logs.measurements import BadSampleCounts, Sample
-from estimator.logs.reader import Log, check_required, extract, finish
-from estimator.logs.samples import SampleExtractor
-from estimator.logs.source import LostData, open_stream
+from estimator.io.logs.measurements import BadSampleCounts, Sample
+from estimator.io.logs.reader import Log, check_required, extract, finish
+from estimator.io.logs.samples import SampleExtractor
+from estimator.io.logs.source import LostData, open_stream
 
 
 class ByteStreamReader:

@@ -24,9 +24,9 @@ import numpy as np
 
 from estimator.config import ARRAY_KINDS, Config, NameCheck, check_model_names, load_config
 from estimator.errors import ConfigError, MissingTopicError
-from estimator.logs import ros2_types
-from estimator.logs.measurements import BadSampleCounts, Measurement, TopicStats
-from estimator.logs.reader import Log, read_log
+from estimator.io.logs import ros2_types
+from estimator.io.logs.measurements import BadSampleCounts, Measurement, TopicStats
+from estimator.io.logs.reader import Log, read_log
 from estimator.model_checks import (
     ActuatorRow,
     CommandCheck,

@@ -1,0 +1,48 @@
+"""The marginal prior: what the knots before a window said about its first keys, the others
+marginalized (a Schur complement of their normal equations; `estimator.solver.window`).
+
+    ½ (δ − δ̂)ᵀ Λ (δ − δ̂)        δ = (q_k ⊖ q̄_k, b_k − b̄_k) over the first n keys
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+
+@dataclass(frozen=True)
+class MarginalPrior:
+    """What the knots before a window said about its first n keys, the others marginalized
+    (a Schur complement of their normal equations): ½ (δ − δ̂)ᵀ Λ (δ − δ̂), δ = (q_k ⊖ q̄_k,
+    b_k − b̄_k) stacked over keys 0 … n − 1 (n = span − 1: every key the next rows share).
+
+    qpos (n, nq), bias (n, nb): its linearization point q̄, b̄ (the previous window's
+    solution); info Λ (n nz, n nz); mean δ̂ (n nz): where the marginal puts those keys.
+    gain: (m nz, n nz) −H_ee⁻¹ H_er, how the m marginalized keys before follow when the next
+    window moves these keys (the smoother's backward pass, linearized: `follow`).
+    """
+
+    qpos: np.ndarray
+    bias: np.ndarray
+    info: np.ndarray
+    mean: np.ndarray
+    gain: np.ndarray
+
+    @property
+    def keys(self) -> int:
+        return len(self.qpos)
+
+    def error(self, model: mujoco.MjModel, qpos: np.ndarray, bias: np.ndarray) -> np.ndarray:
+        """δ − δ̂ (n nz) at the window's first n keys of (qpos, bias)."""
+        delta = []
+        for k in range(self.keys):
+            dq = np.zeros(model.nv)
+            mujoco.mj_differentiatePos(model, dq, 1.0, self.qpos[k], qpos[k])  # q ⊖ q̄
+            delta.append(np.r_[dq, bias[k] - self.bias[k]])
+        return np.concatenate(delta) - self.mean
+
+    def cost(self, model: mujoco.MjModel, qpos: np.ndarray, bias: np.ndarray) -> float:
+        e = self.error(model, qpos, bias)
+        return 0.5 * float(e @ self.info @ e)

@@ -1,0 +1,283 @@
+"""The normal equations of a window, block-banded by key, and their Levenberg–Marquardt step.
+
+Every factor sits on three consecutive keys (z_{k−1}, z_k, z_{k+1}), the constant-acceleration
+prior on four (dof to dof), so JᵀJ is block-banded (bandwidth 2 or 3 keys), summed straight
+into key blocks over the columns each factor reaches: each trial is one banded Cholesky
+(LAPACK pbtrf through scipy), O(T); its marginal covariances come from the same factor by
+selected inversion (`banded_inverse_blocks`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import scipy.linalg
+
+from estimator.factors import bias_walk
+from estimator.factors.base import Block
+from estimator.solver.linearize import THREADS, Linearizer, z_columns
+from physics.knots import chunks
+
+LAMBDA_MIN = 1e-9  # Levenberg–Marquardt's least damping, and its first
+
+
+LAMBDA_REJECTED = 1e-5  # the least damping after a rejected step
+
+
+MARGINAL_REGULARIZER = 1e-14  # on the unit diagonal of S H S (`BandedSystem.marginal_std`)
+
+
+@dataclass
+class BandedSystem:
+    """JᵀJ dx = −Jᵀr of a window, by blocks of keys: H_kk = diag[k] (T, nz, nz),
+    H_{k+d, k} = lower[d − 1][k] for d = 1 … span − 1; g = Jᵀr (T, nz)."""
+
+    diag: np.ndarray
+    lower: list[np.ndarray]
+    g: np.ndarray
+
+    @classmethod
+    def of(
+        cls,
+        blocks: list[Block],
+        lin: Linearizer,
+        bias: np.ndarray,
+        qpos: np.ndarray | None = None,
+        until: int | None = None,
+    ) -> BandedSystem:
+        """The system of `lin.linearize`'s blocks (and the bias prior and walk, and the
+        marginal prior at qpos). until: only the factors on keys ≤ until — the rows of knots
+        k ≤ until − span + 2 and the walk steps to keys ≤ until — what a window's past says
+        before its keys ≤ until are marginalized (`marginal_prior`)."""
+        p = lin.problem
+        if until is not None:
+            last_row = until - lin.span + 2  # knot of the last row kept: it reaches key `until`
+            keep = (np.arange(p.T - 2) + 1 <= last_row)[:, None]
+            blocks = [
+                replace(
+                    b,
+                    r=b.r * keep,
+                    J=None if b.J is None else b.J * keep.reshape(-1, *[1] * (b.J.ndim - 1)),
+                    J_bias=None if b.J_bias is None else b.J_bias * keep[:, :, None],
+                )
+                for b in blocks
+            ]
+        T, nz, span = p.T, p.nz, lin.span
+        K = T - 2
+        # Knot row i (knot k = i + 1) reaches keys i + a, a = 0 … span − 1. Each factor's
+        # Jacobian is split by key into runs of consecutive columns, (a, columns in J,
+        # columns in z_{i+a}) (slices: fancy indexing is 5× slower). The sensors' blocks, a
+        # few rows each, are stacked into one over the union of their columns.
+        dofwise = [(b.r, b.J) for b in blocks if b.dofwise and b.J is not None]
+        groups = [[b] for b in blocks if not (b.dofwise or b.sensor)]
+        groups.append([b for b in blocks if b.sensor])
+        parts = []  # (r, [(J, its columns in the union)], number of columns, runs)
+        for group in groups:
+            reach = [z_columns(p, b) for b in group]
+            if len(reach) == 1:  # its own columns, in their order
+                cols = reach[0][1]
+            else:
+                cols = np.unique(np.concatenate([c for _, c in reach] or [np.zeros(0, int)]))
+            if not len(cols):  # (rows with no measurement in this window)
+                continue
+            starts = np.flatnonzero((np.diff(cols, prepend=-2) != 1) | (cols % nz == 0))
+            runs = [
+                (cols[i] // nz, slice(i, j), slice(cols[i] % nz, cols[i] % nz + j - i))
+                for i, j in zip(starts, [*starts[1:], len(cols)], strict=True)
+            ]
+            r = np.concatenate([b.r for b in group], axis=1)
+            parts.append((r, [(J, np.searchsorted(cols, c)) for J, c in reach], len(cols), runs))
+        # the priors' rows reach one dof (or one rotation's 3) per key: JᵀJ by dof groups
+        vec = lin.vector_dofs
+
+        def products(c: range) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+            """This chunk of knots' share of (diag, lower, g), in its own arrays (threads)."""
+            diag = np.zeros((T, nz, nz))
+            lower = [np.zeros((T - d, nz, nz)) for d in range(1, span)]
+            g = np.zeros((T, nz))
+            H = [diag, *lower]  # H[a − b][key of b]: H_{k+a−b, k}
+            i0, i1 = c.start, c.stop
+            for r, reach, n_cols, runs in parts:
+                rc = r[i0:i1]
+                if len(reach) == 1:
+                    Jc = reach[0][0][i0:i1]
+                else:
+                    Jc = np.zeros((i1 - i0, r.shape[1], n_cols))
+                    row = 0
+                    for J, at in reach:
+                        Jc[:, row : row + J.shape[1], at] = J[i0:i1]
+                        row += J.shape[1]
+                for a, in_a, z_a in runs:
+                    Ja = Jc[:, :, in_a]
+                    g[i0 + a : i1 + a, z_a] += np.einsum("kmc,km->kc", Ja, rc)
+                    for b, in_b, z_b in runs:
+                        if b <= a:
+                            H[a - b][i0 + b : i1 + b, z_a, z_b] += (
+                                Ja.transpose(0, 2, 1) @ Jc[:, :, in_b]
+                            )
+            for r, C in dofwise:
+                n = C.shape[1]  # keys reached (the prior 3, the jerk prior 4)
+                # rows reaching key i + a ≤ T − 1 (the jerk prior's last row, zero, reaches T)
+                rows = [slice(i0, min(i1, T - a)) for a in range(n)]
+                Jv = [C[rows[a], a, vec, 0] for a in range(n)]  # (knots, vector dofs)
+                for a in range(n):
+                    m = rows[a].stop - i0
+                    g[i0 + a : i0 + a + m, vec] += Jv[a] * r[rows[a], vec]
+                    for b in range(a + 1):
+                        diagonal = H[a - b].reshape(-1, nz * nz)[:, :: nz + 1]  # a view
+                        diagonal[i0 + b : i0 + b + m, vec] += Jv[a] * Jv[b][:m]
+                for d in lin.rotation_dofs:  # the 3 rows of a rotation on its 3 columns
+                    rot = slice(d, d + 3)
+                    Jr = [C[rows[a], a, rot] for a in range(n)]  # (knots, 3, 3)
+                    for a in range(n):
+                        m = rows[a].stop - i0
+                        JrT = Jr[a].transpose(0, 2, 1)
+                        g[i0 + a : i0 + a + m, rot] += (JrT @ r[rows[a], rot, None])[:, :, 0]
+                        for b in range(a + 1):
+                            H[a - b][i0 + b : i0 + b + m, rot, rot] += JrT @ Jr[b][:m]
+            return diag, lower, g
+
+        shares = list(lin.pool.map(products, chunks(0, K, THREADS)))
+        diag, lower, g = shares[0]
+        for more_diag, more_lower, more_g in shares[1:]:
+            diag += more_diag
+            g += more_g
+            for mine, more in zip(lower, more_lower, strict=True):
+                mine += more
+        if p.nb:  # (a marginal prior holds b_0 already) the steps k → k + 1 to keys ≤ the
+            # last kept row's knot, with `until`
+            n = T - 1 if until is None else min(T - 1, until - lin.span + 2)
+            bias_walk.add_normal_equations(p, bias, diag, lower[0], g, lin.prior is None, n)
+        if lin.prior is not None:  # ½ eᵀΛe on the first keys: H += Λ, g += Λe
+            assert qpos is not None, "a marginal prior needs the window's qpos"
+            prior = lin.prior
+            Lam = prior.info.reshape(prior.keys, nz, prior.keys, nz)
+            Le = (prior.info @ prior.error(p.model, qpos, bias)).reshape(prior.keys, nz)
+            for i in range(prior.keys):
+                g[i] += Le[i]
+                diag[i] += Lam[i, :, i]
+                for j in range(i):
+                    lower[i - j - 1][j] += Lam[i, :, j]
+        return cls(diag, lower, g)
+
+    def marginal_std(self, nv: int, warnings: list[str], keys: range | None = None) -> np.ndarray:
+        """(T, nv) marginal standard deviations of x_k at `keys` (default: all; NaN at the
+        others): the diagonal of H⁻¹ = S (S H S)⁻¹ S (S = diag(H)^−½) by a banded Cholesky
+        of the scaled system and the selected inverse of its band (`banded_inverse_blocks`).
+
+        Contact directions make JᵀJ stiff (≈1e12–1e17) beside weakly observed ones (1e6), and
+        S H S has eigenvalues far below 1: an accelerometer at every knot puts ≈4e14 on the
+        diagonal where the mocap knows the position as a whole to ≈1e6 (an eigenvalue ≈2e-9);
+        a free object's tilt in a gripper at h = 0.5 ms reaches ≈5e-12. GTSAM's Marginals
+        declared that system indeterminate below a regularizer of 1e-8 on the unit diagonal,
+        which halved the position σ of every floating base. MARGINAL_REGULARIZER only keeps
+        the directions nothing observes finite (there σ comes out huge, as it should)."""
+        T, nz, _ = self.diag.shape
+        std = np.full((T, nv), np.nan)
+        s, ab = self.scaled_band()
+        ab = ab.copy(order="F")
+        ab[0] += MARGINAL_REGULARIZER
+        try:
+            L = scipy.linalg.cholesky_banded(ab, overwrite_ab=True, lower=True, check_finite=False)
+        except np.linalg.LinAlgError as err:
+            warnings.append(f"covariances unavailable ({err}); qpos_std is NaN")
+            return std
+        first = 0 if keys is None or len(keys) == 0 else keys.start
+        Z = banded_inverse_blocks(L, nz, first)
+        variance = np.einsum("kii->ki", Z)[:, :nv] * s.reshape(T, nz)[first:, :nv] ** 2
+        chosen = np.arange(first, T) if keys is None else np.asarray(keys, dtype=int)
+        std[chosen] = np.sqrt(np.clip(variance[chosen - first], 0.0, None))
+        return std
+
+    def scaled_band(self) -> tuple[np.ndarray, np.ndarray]:
+        """Marquardt scaling s = diag(H)^−½ and the lower band of S H S in LAPACK storage
+        (ab[i − j, j] = (S H S)_ij), unit diagonal.
+
+        The band is as wide as the farthest coupling: keys span − 1 apart couple only through
+        the jerk prior, dof to dof (a rotation's 3 to its 3), so its rows end there: 3 nz + 3
+        rows instead of 4 nz (the banded Cholesky's cost goes with the band's square)."""
+        T, nz, _ = self.diag.shape
+        d = np.einsum("kii->ki", self.diag).reshape(-1)
+        s = 1.0 / np.sqrt(d + 1e-12 * max(float(d.max()), 1.0))
+        S = s.reshape(T, nz)
+        span = len(self.lower) + 1
+        rows, cols = np.nonzero(np.any(self.lower[-1] != 0, axis=0))
+        kd = (span - 1) * nz + int(np.max(rows - cols, initial=-1))  # the farthest nonzero
+        # LAPACK's ab[i − j, j] = H_ij: key k's column c holds H_{k+o, k}[r, c] at
+        # i − j = o nz + r − c, written through a skewed view of M[k, c, nz + (i − j)] (the
+        # padding nz on each side takes the diagonal block's upper half and the zeros past kd)
+        M = np.zeros((T, nz, nz + kd + 1 + nz))
+        st = M.strides
+        for offset, blocks in enumerate([self.diag, *self.lower]):
+            n = len(blocks)
+            skewed = np.lib.stride_tricks.as_strided(
+                M[:n, :, (offset + 1) * nz :],
+                shape=(n, nz, nz),
+                strides=(st[0], st[1] - st[2], st[2]),
+            )  # skewed[k, c, r] = M[k, c, nz + offset·nz + r − c]
+            skewed[...] = (S[offset : offset + n, :, None] * blocks * S[:n, None, :]).transpose(
+                0, 2, 1
+            )
+        # in Fortran order, as LAPACK reads it (scipy would copy it otherwise)
+        ab = M[:, :, nz : nz + kd + 1].reshape(T * nz, kd + 1).T
+        return s, ab
+
+    def predicted_decrease(self, s: np.ndarray, lam: float, dx: np.ndarray) -> float:
+        """The quadratic model's cost decrease −gᵀdx − ½dxᵀH dx at the damped step dx, which
+        solves (H + λD) dx = −g with D = s⁻²: ½(−gᵀdx + λ dxᵀD dx)."""
+        d = dx.reshape(-1)
+        return 0.5 * float(-self.g.reshape(-1) @ d + lam * np.sum(np.square(d / s)))
+
+    def damped_step(self, s: np.ndarray, ab: np.ndarray, lam: float) -> np.ndarray:
+        """argmin ‖J dx + r‖² + λ Σ diag(JᵀJ) dx² → dx (T, nz); raises LinAlgError when the
+        damped system is not positive definite."""
+        damped = ab.copy(order="F")
+        damped[0] += lam
+        factor = scipy.linalg.cholesky_banded(
+            damped, overwrite_ab=True, lower=True, check_finite=False
+        )
+        y = scipy.linalg.cho_solve_banded((factor, True), -s * self.g.reshape(-1))
+        return (s * y).reshape(self.g.shape)
+
+
+def banded_inverse_blocks(L: np.ndarray, nz: int, first: int = 0) -> np.ndarray:
+    """The diagonal blocks Z_kk (T − first, nz, nz) of A⁻¹ for A = L Lᵀ, L lower banded in
+    LAPACK storage (L[d, j] = L_{j+d, j}), keys of nz unknowns, without forming A⁻¹: the
+    selected inversion (Takahashi's recurrence) from Lᵀ Z = L⁻¹, key k from the last down,
+
+        Z_{k, k+1:k+m} = −L_kk⁻ᵀ B_kᵀ Z_{k+1:k+m, k+1:k+m},
+        Z_kk = L_kk⁻ᵀ (L_kk⁻¹ − B_kᵀ Z_{k, k+1:k+m}ᵀ),
+
+    with B_k the rows of L below L_kk in key k's columns and m keys its band reaches; Z is
+    needed only within the band, held as a rolling window of m + 1 keys."""
+    kd, N = L.shape[0] - 1, L.shape[1]
+    T = N // nz
+    m = -(-kd // nz)  # keys below the diagonal block a column reaches
+    w = (m + 1) * nz
+    # C[k, t, c] = L[k nz + t, k nz + c]: key k's columns, rows k nz … k nz + w − 1
+    t, c = np.arange(w)[:, None], np.arange(nz)[None, :]
+    d = t - c
+    inside = (d >= 0) & (d <= kd)
+    cols = np.arange(T)[:, None, None] * nz + c[None]
+    rows = cols + d[None]
+    C = np.where(
+        inside[None] & (rows < N), L[np.clip(d, 0, kd)[None], np.minimum(cols, N - 1)], 0.0
+    )
+    out = np.empty((T - first, nz, nz))
+    W = np.zeros((w, w))  # Z over keys k … k + m (rows beyond the last key stay 0)
+    for k in range(T - 1, first - 1, -1):
+        Lkk, B = C[k, :nz], C[k, nz:]
+        sub = W[: w - nz, : w - nz]  # keys k + 1 … k + m, the previous window's first m
+        X = scipy.linalg.solve_triangular(Lkk, B.T @ sub, lower=True, trans="T")
+        inv_Lkk = scipy.linalg.solve_triangular(Lkk, np.eye(nz), lower=True)
+        Zkk = scipy.linalg.solve_triangular(Lkk, inv_Lkk + B.T @ X.T, lower=True, trans="T")
+        Zkk = 0.5 * (Zkk + Zkk.T)
+        new = np.empty((w, w))
+        new[nz:, nz:] = sub
+        new[:nz, nz:] = -X
+        new[nz:, :nz] = -X.T
+        new[:nz, :nz] = Zkk
+        W = new
+        out[k - first] = Zkk
+    return out
