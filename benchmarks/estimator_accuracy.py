@@ -21,10 +21,11 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from estimator.batch import estimate
 from estimator.config import load_config
 from estimator.io.logs import read_log
 from estimator.io.state_topics import at_times, read_ground_truth, trajectory_errors
-from estimator.run import estimate, initial_trajectory
+from estimator.run import initial_trajectory
 from estimator.settings import CHOICES, Settings
 
 ROOT = Path(__file__).resolve().parent.parent

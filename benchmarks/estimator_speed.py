@@ -31,11 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
+from estimator.batch import estimate
 from estimator.config import load_config
 from estimator.io.logs import read_log
 from estimator.knots import knot_grid
 from estimator.problem import accelerations, build_problem, velocities
-from estimator.run import estimate, initial_trajectory
+from estimator.run import initial_trajectory
 from estimator.settings import CHOICES, Settings
 from estimator.solver.linearize import THREADS
 from physics.knots import KnotEngine

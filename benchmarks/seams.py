@@ -28,11 +28,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from estimator.batch import estimate  # noqa: E402
 from estimator.config import load_config  # noqa: E402
 from estimator.io.logs import read_log  # noqa: E402
 from estimator.io.state_topics import at_times, read_ground_truth  # noqa: E402
 from estimator.problem import accelerations, velocities  # noqa: E402
-from estimator.run import estimate  # noqa: E402
 from estimator.settings import Settings  # noqa: E402
 
 NEAR = 2  # knots on each side of a join

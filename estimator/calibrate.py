@@ -29,10 +29,10 @@ from typing import Any
 import numpy as np
 import tomlkit
 
+from estimator.batch import estimate
 from estimator.config import MOCAP_KINDS, Config
 from estimator.errors import ConfigError, PhysfuseError
 from estimator.io.logs.measurements import Measurement
-from estimator.run import estimate
 from estimator.settings import Settings
 from physics.errors import UnsupportedModelError
 from physics.softness import Softness

@@ -18,13 +18,14 @@ from typing import Any
 
 import numpy as np
 
+from estimator.batch import estimate
 from estimator.config import load_config
 from estimator.errors import ConfigError, PhysfuseError
 from estimator.estimate import Estimate
 from estimator.fleet import as_task, ray_session
 from estimator.io.logs import Measurement
 from estimator.knots import knot_grid
-from estimator.run import Summary, estimate, largest_residuals, samples_within, softness_fitted
+from estimator.run import Summary, largest_residuals, samples_within, softness_fitted
 from estimator.settings import Settings
 
 OVERLAP_S = 2.0  # of log on each side of a chunk that its estimate sees and the join drops

@@ -12,7 +12,6 @@ from typing import Any
 
 import mujoco
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from estimator.actuation import moment_dense
 from estimator.config import Config
@@ -74,29 +73,6 @@ class Summary:
 
 
 PASS_COUNTS = ("linearizations", "evaluations", "knots_linearized", "knots_evaluated")
-
-
-def estimate(
-    config: Config,
-    measurements: Mapping[str, Measurement],
-    settings: Settings,
-    progress: Callable[[int, int], None] | None = None,
-    knots: np.ndarray | None = None,
-) -> tuple[Estimate, Summary]:
-    """Estimate the whole log by `settings.method`; `progress(done, total)` is called after
-    each window (physics, kinematic) or stretch of the log (filters). knots: the smoothers'
-    knot times (default: `knot_grid` over the measurements; a chunk of a longer log takes
-    its slice of the log's grid)."""
-    # MuJoCo runs on THREADS threads; the small BLAS calls between its passes are fastest on
-    # one (measured: a multithreaded OpenBLAS spin-waits 10× slower on a busy machine)
-    with threadpool_limits(limits=1, user_api="blas"):
-        if settings.method == "raw":
-            return raw_estimate(config, measurements, settings)
-        if settings.method in ("ekf", "ukf"):
-            from estimator.baselines.filters import filter_estimate  # (it builds on this module)
-
-            return filter_estimate(config, measurements, settings, settings.method, progress)
-        return smooth(config, measurements, settings, progress, knots)
 
 
 def smooth(

@@ -9,6 +9,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from estimator.batch import estimate
 from estimator.config import load_config
 from estimator.contact_forces import balanced_constraints, contact_jacobian, project_to_cone
 from estimator.errors import ConfigError
@@ -16,7 +17,7 @@ from estimator.io.logs import read_log
 from estimator.io.mcap_writer import contact_wrenches
 from estimator.io.state_topics import at_times, read_state_topics
 from estimator.problem import build_problem
-from estimator.run import collect_estimate, estimate
+from estimator.run import collect_estimate
 from estimator.settings import Settings
 from physics.dynamics import make_dynamics
 

@@ -514,3 +514,15 @@ def test_constant_acceleration_prior_defaults_by_method():
         spans.append(lin.span)
         lin.close()
     assert spans == [4, 3]
+
+
+def test_the_readme_python_example_runs(monkeypatch, capsys):
+    """The README's Python API example, as a notebook user pastes it (on the single-joint
+    recording, for time): the same objects the CLI uses, no private names."""
+    readme = (ROOT / "README.md").read_text()
+    code = readme.split("```python\n")[1].split("```")[0]
+    assert "from estimator.batch import estimate" in code
+    monkeypatch.chdir(ROOT)
+    exec(code.replace("go2", "single_joint"), {})
+    shapes = capsys.readouterr().out
+    assert shapes.startswith("(") and "True" in shapes.splitlines()[-1]

@@ -10,9 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from estimator.batch import estimate
 from estimator.config import load_config
 from estimator.io.logs import read_log
-from estimator.run import estimate
 from estimator.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -27,6 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 from estimator import chunks, fleet
+from estimator.batch import estimate
 from estimator.config import load_config
 from estimator.errors import ConfigError, LogError
 from estimator.estimate import Estimate
@@ -45,7 +46,7 @@ from estimator.model_checks import (
     command_warnings,
     commands_against_efforts,
 )
-from estimator.run import Summary, estimate, initial_trajectory
+from estimator.run import Summary, initial_trajectory
 from estimator.settings import CHOICES, SETTINGS, Settings
 
 OUTPUTS = ("estimate.mcap", "estimate.rrd", "summary.json")  # one run's set, written whole

@@ -31,6 +31,7 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
+from estimator.batch import estimate
 from estimator.config import MOCAP_KINDS, Config, load_config
 from estimator.errors import LogError, PhysfuseError
 from estimator.evaluate import (
@@ -53,7 +54,7 @@ from estimator.problem import (
     model_with_sensors,
     velocities,
 )
-from estimator.run import estimate, initial_trajectory
+from estimator.run import initial_trajectory
 from estimator.settings import Settings
 from physics.errors import PhysicsError
 from physics.knots import KnotEngine
