@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 import mujoco
-import numpy as np
 from tqdm import tqdm
 
 from estimator import chunks, fleet
@@ -32,13 +31,7 @@ from estimator.config import load_config
 from estimator.errors import ConfigError, LogError
 from estimator.estimate import Estimate
 from estimator.io.logs import Measurement, read_log
-from estimator.io.mcap_writer import (
-    Ros2Writer,
-    StateLayout,
-    imu_bias_message,
-    state_data,
-    write_state,
-)
+from estimator.io.mcap_writer import EstimateWriter
 from estimator.io.outputs import OutputFolder
 from estimator.io.state_topics import at_times, read_ground_truth, trajectory_errors
 from estimator.model_checks import (
@@ -178,7 +171,10 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
         model = config.load_model()
         imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
-        write_estimate_mcap(tmp / "estimate.mcap", est, model, imu_sites, run_id)
+        with EstimateWriter(
+            tmp / "estimate.mcap", model, est.model_name, est.h, run_id
+        ) as out_mcap:
+            out_mcap.write(est, range(est.T), imu_sites)
         accuracy = _accuracy(args.log, model, log.measurements, est)
         lost = [asdict(x) for x in log.lost]
         report = _report(summary, settings, accuracy, out, run_id, skipped, lost)
@@ -274,51 +270,6 @@ def skipped_lines(skipped: Mapping[str, Mapping[str, Any]]) -> list[str]:
         for name, s in skipped.items()
         if s["skipped"]
     ]
-
-
-def write_estimate_mcap(
-    path: Path,
-    est: Estimate,
-    model: mujoco.MjModel,
-    imu_sites: Mapping[str, str] | None = None,
-    run_id: str = "",
-) -> int:
-    """The estimate in the `/estimate/...` layout, one state per knot, and each IMU stream's
-    bias (`/estimate/imu_bias/<stream>`, frame: its site from `imu_sites`, stream → site);
-    metadata `physfuse.estimate` names the model and the run (`run_id`, also in summary.json).
-    Returns the message count."""
-    layout = StateLayout.of(model)
-    data = mujoco.MjData(model)
-    free = [j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
-    sites = imu_sites or {}
-    count = 0
-    with Ros2Writer(path) as writer:
-        metadata = {"model": est.model_name, "h": repr(est.h), "run_id": run_id}
-        writer.add_metadata("physfuse.estimate", metadata)
-        for k in range(est.T):
-            state_data(model, est.qpos[k], est.qvel[k], data)
-            covariance = {}
-            for j in free:
-                body = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, int(model.jnt_bodyid[j]))
-                std = est.qpos_std[k, model.jnt_dofadr[j] : model.jnt_dofadr[j] + 6]
-                covariance[body] = np.diag(np.nan_to_num(std, nan=0.0) ** 2)
-            count += write_state(
-                writer,
-                "/estimate",
-                int(est.t_ns[k]),
-                model,
-                data,
-                qfrc=est.qfrc_inverse[k],
-                constraints=est.constraints[k],
-                pose_covariance=covariance,
-                layout=layout,
-            )
-            for stream, bias in est.imu_bias.items():
-                t_ns = int(est.t_ns[k])
-                m = imu_bias_message("/estimate", stream, t_ns, sites.get(stream, ""), bias[k])
-                writer.write(m.topic, m.msg_type, m.fields, m.log_time_ns)
-                count += 1
-    return count
 
 
 def _accuracy(

@@ -43,7 +43,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any, NamedTuple
+from typing import IO, TYPE_CHECKING, Any, NamedTuple
 
 import mujoco
 import numpy as np
@@ -56,6 +56,9 @@ from mcap_ros2._dynamic import EncoderFunction, serialize_dynamic
 from estimator.io.logs import ros2_types
 from estimator.io.logs.ros2_types import CONTACT_ARRAY
 from physics.result import Constraints
+
+if TYPE_CHECKING:
+    from estimator.estimate import Estimate
 
 NS = 1_000_000_000
 
@@ -503,3 +506,74 @@ def _covariance(table: Mapping[str, np.ndarray] | None, body: str) -> list[float
     if cov.shape != (6, 6):
         raise ValueError(f"covariance of {body!r} has shape {cov.shape}, expected (6, 6)")
     return [float(v) for v in cov.reshape(-1)]
+
+
+class EstimateWriter:
+    """An estimate in the `/estimate/...` layout, knot by knot: a batch run writes every knot
+    at once, a streaming run each as it is final. Each IMU stream's bias goes to
+    `/estimate/imu_bias/<stream>` (frame: its site); metadata `physfuse.estimate` names the
+    model, the knot spacing and the run (`run_id`, also in summary.json).
+
+        with EstimateWriter(path, model, est.model_name, est.h, run_id) as out:
+            out.write(est, range(est.T), {"imu": "imu_site"})
+    """
+
+    def __init__(
+        self,
+        output: str | Path | IO[bytes],
+        model: mujoco.MjModel,
+        model_name: str,
+        h: float,
+        run_id: str = "",
+    ) -> None:
+        self.model = model
+        self.layout = StateLayout.of(model)
+        self.data = mujoco.MjData(model)
+        self.free = [
+            j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE
+        ]
+        self.writer = Ros2Writer(output)
+        self.writer.add_metadata(
+            "physfuse.estimate", {"model": model_name, "h": repr(h), "run_id": run_id}
+        )
+        self.message_count = 0
+
+    def write(self, est: Estimate, knots: range, imu_sites: Mapping[str, str] | None = None) -> int:
+        """Knots `knots` of an `Estimate` (qpos, qvel, qpos_std, qfrc_inverse, constraints,
+        imu_bias); returns the messages written."""
+        model, data, sites = self.model, self.data, imu_sites or {}
+        count = 0
+        for k in knots:
+            state_data(model, est.qpos[k], est.qvel[k], data)
+            covariance = {}
+            for j in self.free:
+                body = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, int(model.jnt_bodyid[j]))
+                std = est.qpos_std[k, model.jnt_dofadr[j] : model.jnt_dofadr[j] + 6]
+                covariance[body] = np.diag(np.nan_to_num(std, nan=0.0) ** 2)
+            t_ns = int(est.t_ns[k])
+            count += write_state(
+                self.writer,
+                "/estimate",
+                t_ns,
+                model,
+                data,
+                qfrc=est.qfrc_inverse[k],
+                constraints=est.constraints[k],
+                pose_covariance=covariance,
+                layout=self.layout,
+            )
+            for stream, bias in est.imu_bias.items():
+                m = imu_bias_message("/estimate", stream, t_ns, sites.get(stream, ""), bias[k])
+                self.writer.write(m.topic, m.msg_type, m.fields, m.log_time_ns)
+                count += 1
+        self.message_count += count
+        return count
+
+    def close(self) -> None:
+        self.writer.finish()
+
+    def __enter__(self) -> EstimateWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
