@@ -87,16 +87,30 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--window", type=float, default=1.0, help="window length, s")
     parser.add_argument("--methods", nargs="+", default=["physics"])
+    parser.add_argument(
+        "--join",
+        nargs="+",
+        default=["quiet", "fixed"],
+        choices=["quiet", "fixed"],
+        help="where windows hand over (the join setting); each in the same run",
+    )
     parser.add_argument("--out", type=Path, default=Path("out/seams"))
     args = parser.parse_args(argv)
-    rows = [seams(n, args.window, m) for n in args.recordings for m in args.methods]
-    head = f"{'recording':16s} {'method':9s} {'joins':>5s} {'join med':>9s} {'inside med':>10s} "
+    rows = [
+        seams(n, args.window, m, join=j) | {"join": j}
+        for n in args.recordings
+        for m in args.methods
+        for j in args.join
+    ]
+    head = f"{'recording':16s} {'method':9s} {'join':6s} {'joins':>5s} {'join med':>9s} "
+    head += f"{'inside med':>10s} "
     head += f"{'ratio':>6s} {'join p95':>9s} {'inside p95':>10s} {'ratio':>6s} {'max':>8s}"
     head += f" {'1-window: join med':>18s} {'p95':>6s}"
     print(head)
     for r in rows:
         print(
-            f"{r['recording']:16s} {r['method']:9s} {r['joins']:5d} {r['join_median']:9.3g} "
+            f"{r['recording']:16s} {r['method']:9s} {r['join']:6s} {r['joins']:5d} "
+            f"{r['join_median']:9.3g} "
             f"{r['interior_median']:10.3g} {r['ratio_median']:6.2f} {r['join_p95']:9.3g} "
             f"{r['interior_p95']:10.3g} {r['ratio_p95']:6.2f} {r['join_max']:8.3g}"
             f" {r['one_window_join_median']:18.3g} {r['one_window_join_p95']:6.3g}"

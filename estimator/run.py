@@ -152,14 +152,22 @@ def smooth(
                 starts_at = {"kinematic": kinematic}
             else:
                 starts_at = {"kinematic": kinematic, **starts_at}
+        # the next window's start: where this one's kept knots end, or (join = "quiet") the
+        # quietest key of the later half of that range's look-ahead
+        joins: int | range | None = None if last else a
+        if not last and settings.join == "quiet":
+            joins = range(max(1, a - overlap // 2), a + 1)
         solved = {
-            name: solve_window(problem, q0, b0, False, prior=prior, marginalize=None if last else a)
+            name: solve_window(problem, q0, b0, False, prior=prior, marginalize=joins)
             for name, (q0, b0) in starts_at.items()
         }
         stages += solved.values()
         # "best": the solution of lower cost; its covariance alone
         kept = min(solved, key=lambda name: solved[name].cost_final)
         kept_starts.append(kept)
+        next_start = solved[kept].next_start
+        if not last and next_start is not None:
+            a = next_start
         starts_tried.append(list(solved))
         result = with_covariance(solved[kept], range(0, a), problem)
         # the windows before follow the keys this one moved (a backward pass, linearized)

@@ -96,6 +96,13 @@ class Settings:
         "how far back the backward pass reaches, s: each window follows the keys the next one "
         "moved, through its marginalized past (0: none; memory grows with it)",
     )
+    join: str = setting(
+        "quiet",
+        "where a window hands over to the next: quiet (the key of least jerk in the later half "
+        "of its look-ahead, off impacts, where the marginal prior's linearization holds) | fixed "
+        "(overlap_s before its end)",
+        choices=("quiet", "fixed"),
+    )
     max_iterations: int = setting(
         30, "Levenberg–Marquardt iterations per solve (a window has up to 3)", positive=True
     )

@@ -4,7 +4,7 @@ the next window's first keys, and the backward step that lets the windows before
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import mujoco
 import numpy as np
@@ -46,7 +46,8 @@ class WindowResult:
     # the estimate to the model's parameters (`consider_variance`)
     solved_system: BandedSystem | None = None
     blocks: list[Block] = field(default_factory=list)
-    next_prior: MarginalPrior | None = None  # for the window that starts at `marginalize`
+    next_prior: MarginalPrior | None = None  # for the window that starts at `next_start`
+    next_start: int | None = None  # the key where the next window starts (`marginalize`)
 
 
 def solve_window(
@@ -55,14 +56,15 @@ def solve_window(
     bias: np.ndarray,
     covariance: bool | range = True,
     prior: MarginalPrior | None = None,
-    marginalize: int | None = None,
+    marginalize: int | range | None = None,
 ) -> WindowResult:
     """Levenberg–Marquardt on one window from (qpos (T, nq), bias (T, nb)); the marginal
     covariances at the knots `covariance` (True: all; False: none).
 
     prior: what the knots before the window say about its first keys (`MarginalPrior`).
     marginalize: the key where the next window starts: its prior (`WindowResult.next_prior`)
-    is this window's past up to there, marginalized at the last linearization."""
+    is this window's past up to there, marginalized at the last linearization; a range: the
+    quietest of those keys (`quietest_join`)."""
     lin = Linearizer(problem, prior)
     try:
         p = problem
@@ -124,13 +126,39 @@ def solve_window(
             BandedSystem.of(honest(blocks), lin, bias, qpos) if blocks else system,
             system,
             blocks,
-            marginal_prior(lin, blocks, *at, marginalize) if marginalize and blocks else None,
+            None,
         )
+        if marginalize is not None and blocks:
+            start = (
+                quietest_join(blocks, p.settings.accel_prior_std, marginalize, lin.span)
+                if isinstance(marginalize, range)
+                else marginalize
+            )
+            result = replace(
+                result,
+                next_prior=marginal_prior(lin, blocks, *at, start),
+                next_start=start,
+            )
     finally:
         lin.close()
     if not covariance:
         return result
     return with_covariance(result, covariance if isinstance(covariance, range) else None, problem)
+
+
+def quietest_join(blocks: list[Block], sigma_a: float, keys: range, span: int) -> int:
+    """Of the keys `keys`, the one where the motion is smoothest: the least of the largest
+    jerk ‖a_{j+1} − a_j‖ over the knots whose rows the marginal prior summarizes around it
+    (a_k from the acceleration prior's rows, a_k / σ_a). The prior is a Gaussian of the
+    linearization there, which holds where the dynamics are smooth, not across an impact;
+    ties go to the later key (longer windows)."""
+    (prior,) = [b for b in blocks if b.name == "prior"]
+    a = prior.r * sigma_a  # (K, nv): row i is knot i + 1
+    jerk = np.r_[0.0, np.linalg.norm(np.diff(a, axis=0), axis=1), 0.0]  # at knot i + 1 ≈ k
+    reach = span + 1  # knots on each side whose rows share keys with the join
+    jerk = np.r_[jerk, np.zeros(reach + 1)]
+    worst = [jerk[max(0, k - reach) : k + reach + 1].max() for k in keys]
+    return keys[len(worst) - 1 - int(np.argmin(worst[::-1]))]
 
 
 def marginal_prior(
