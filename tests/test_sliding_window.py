@@ -57,3 +57,19 @@ def test_the_sweep_is_the_one_window_solve_without_seams(short_log):
     assert at_joins < 2 * elsewhere  # the joins differ no more than the rest
     _, no_pass, _ = _swept(short_log, backward_s=0.0)
     assert no_pass > 2 * at_joins  # without the backward pass, they do
+
+
+def test_a_quiet_join_avoids_an_impact():
+    """join = "quiet" hands over at the key of least jerk among the candidates: away from a
+    jump in acceleration (an impact) by more than the knots the marginal prior summarizes."""
+    from estimator.factors.base import Block
+    from estimator.solver.window import quietest_join
+
+    K, nv, span = 100, 4, 4
+    a = np.zeros((K, nv))
+    a[60:, :] = 50.0  # an impact between knots 60 and 61 (row i is knot i + 1)
+    prior = Block("prior", a / 200.0, None, np.zeros(K), np.ones((K, nv), bool), dofwise=True)
+    join = quietest_join([prior], 200.0, range(50, 80), span)
+    assert abs(join - 61) > span + 1 and join == 79  # the latest of the quiet keys
+    # every candidate within reach of the impact: no quieter one, the latest
+    assert quietest_join([prior], 200.0, range(55, 66), span) == 65
