@@ -2,7 +2,7 @@
 
     reader = ByteStreamReader(sock.makefile("rb"), config)
     for sample in reader.samples():   # Sample(stream, t_ns, log_time_ns, values (E, K))
-        smoother.add(sample)
+        handle(sample)                # e.g. append to a buffer, in arrival order
     reader.warnings                   # e.g. the stream ended mid-record
 
 The stream is read record by record without seeking, so a sample is yielded as soon as the
