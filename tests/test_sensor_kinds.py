@@ -137,3 +137,20 @@ def test_new_kinds_config_errors_name_the_key(tmp_path, stream, expected):
     with pytest.raises(ConfigError) as err:
         load_config(path)
     assert expected in str(err.value)
+
+
+def test_simulate_logs_contact_flags_and_maps_them(tmp_path, capsys):
+    """`physfuse simulate --contact-flags BODY...`: the flags on /foot_contacts, a
+    contact_flags stream in --config-out, read back as 0/1 per foot; a body the model lacks
+    is one line naming the option."""
+    log, config = tmp_path / "trot.mcap", tmp_path / "trot.toml"
+    argv = ["simulate", "quadruped_trot", "--duration", "0.4", "--out", str(log), "--quiet"]
+    assert main([*argv, "--config-out", str(config), "--contact-flags", *FEET]) == 0
+    loaded = load_config(config)
+    flags = read_log(log, loaded).measurements["contacts"]
+    assert loaded.streams["contacts"].elements == FEET and flags.values.shape[1:] == (4, 1)
+    assert set(np.unique(flags.values)) <= {0.0, 1.0} and 0 < flags.values.mean() < 1
+    bad = tmp_path / "bad.mcap"
+    assert main(["simulate", "quadruped_trot", "--out", str(bad), "--contact-flags", "wing"]) == 2
+    assert "--contact-flags wing: quadruped has no (moving) body 'wing'" in capsys.readouterr().err
+    assert not bad.exists()

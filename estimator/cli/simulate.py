@@ -19,11 +19,15 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import mujoco
+
 from estimator.io.outputs import OutputFile
 from estimator.simulate import SCENARIOS, SimulationError, scenario_config, simulate
 from estimator.simulate.conditions import CONDITIONS, with_condition
 from estimator.simulate.model_scenario import EXCITATION_RAD, model_scenario
 from estimator.simulate.scenarios import Scenario, get_scenario
+from estimator.simulate.sensors import FootContacts
+from physics.model import load_model
 
 # the options of --model, by argparse dest
 MODEL_OPTIONS = {
@@ -91,6 +95,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             + " (default: the scenario as its sample recording)"
         ).replace("%", "%%"),
     )
+    parser.add_argument(
+        "--contact-flags",
+        nargs="+",
+        metavar="BODY",
+        help="also log binary foot-contact flags of these bodies (std_msgs/Float64MultiArray on "
+        "/foot_contacts: 1 where the body's contact normal force exceeds 5 N), and map them in "
+        "--config-out as a contact_flags stream",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bars or summary")
 
 
@@ -106,6 +118,15 @@ def run(args: argparse.Namespace) -> int:
                 f"--ground-truth-every {args.ground_truth_every}: expected a step count >= 1"
             )
         scenario = replace(scenario, ground_truth_decimation=args.ground_truth_every)
+    if args.contact_flags:
+        model = load_model(scenario.model)
+        for body in args.contact_flags:
+            if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body) <= 0:
+                raise SimulationError(
+                    f"--contact-flags {body}: {scenario.model} has no (moving) body {body!r}"
+                )
+        flags = FootContacts(tuple(args.contact_flags))
+        scenario = replace(scenario, sensors=(*scenario.sensors, flags))
     if args.duration is not None and not args.duration > 0:
         raise SimulationError(f"--duration {args.duration}: expected a positive number of seconds")
     # checked before simulating; each file put in place only once complete
