@@ -37,8 +37,25 @@ from estimator.solver.softness_fit import fit_softness
 from estimator.solver.window import follow, solve_window
 from physics.dynamics import make_dynamics
 from physics.model import weight as model_weight
+from physics.result import Constraints, Contacts
 
 _OBJ = mujoco.mjtObj
+# a knot whose forces were not computed (`collect_estimate(knots=...)`)
+_NO_CONSTRAINTS = Constraints(
+    np.zeros(0),
+    np.zeros(0, int),
+    np.zeros(0, int),
+    np.zeros(0, int),
+    Contacts(
+        np.zeros((0, 3)),
+        np.zeros((0, 3, 3)),
+        np.zeros(0, int),
+        np.zeros((0, 2), int),
+        np.zeros(0, int),
+        np.zeros((0, 5)),
+    ),
+    0.0,
+)
 
 
 @dataclass
@@ -349,6 +366,7 @@ def initial_trajectory(
     measurements: Mapping[str, Measurement],
     t_ns: np.ndarray,
     filled: np.ndarray | None = None,
+    measured_out: np.ndarray | None = None,
 ) -> np.ndarray:
     """(T, nq) q_k from mocap (poses, or markers fitted by Kabsch) and joint encoders.
 
@@ -357,6 +375,7 @@ def initial_trajectory(
     filled (T,): set True at the knots where a measured coordinate was interpolated across a
     gap (an occlusion, a dropout), or held at an end for more than 2.5 of its stream's sample
     periods (a stream that starts late, or stops early).
+    measured_out (T, nq): set True where a coordinate comes from a measurement at that knot.
     """
     T = len(t_ns)
     home = model.qpos0.copy()
@@ -386,6 +405,8 @@ def initial_trajectory(
                 measured[ok, adr] = True
         period = np.median(np.diff(m.t_ns)) if len(m) > 1 else 0.0
         held_ns[measured.any(axis=0) & ~before] = 2.5 * period
+    if measured_out is not None:
+        measured_out[:] = measured
     _fill_gaps(model, qpos, measured)
     if filled is not None:
         filled[:] = _gap_knots(measured, t_ns, held_ns)
@@ -511,12 +532,22 @@ def _fill_gaps(model: mujoco.MjModel, qpos: np.ndarray, measured: np.ndarray) ->
 
 
 def collect_estimate(
-    problem: Problem, qpos: np.ndarray, bias: np.ndarray, std: np.ndarray, config: Config
+    problem: Problem,
+    qpos: np.ndarray,
+    bias: np.ndarray,
+    std: np.ndarray,
+    config: Config,
+    knots: Sequence[int] | None = None,
+    residuals: bool = True,
 ) -> Estimate:
     """The Estimate of a trajectory qpos (T, nq) with IMU biases (T, nb) on problem's knots:
     v, a by finite differences, forces and impulses by the native analytic inverse (contact
     impulses balanced unless settings.contact_forces = "model": estimator.contact_forces),
-    residuals of every factor. std: (T, nv) marginal standard deviations (NaN where unknown)."""
+    residuals of every factor. std: (T, nv) marginal standard deviations (NaN where unknown).
+
+    knots: the knots whose forces and contacts are wanted (default: all; the others NaN, no
+    contacts); residuals=False leaves the residuals out (a streaming update publishes knots,
+    not a report)."""
     model, h = problem.model, problem.h
     v = velocities(model, qpos, h)
     a = accelerations(v, h)
@@ -529,7 +560,11 @@ def collect_estimate(
     force_std = problem.settings.contact_force_std * model_weight(model)
     qfrc_known = u_known_along(problem, qpos)
     data = mujoco.MjData(model)
+    wanted = set(range(problem.T) if knots is None else knots)
     for k in range(problem.T):
+        if k not in wanted:
+            constraints.append(_NO_CONSTRAINTS)
+            continue
         inv = dyn.inverse(qpos[k], v[k], a[k])
         qfrc[k] = inv.qfrc_inverse
         c = inv.constraints
@@ -546,7 +581,7 @@ def collect_estimate(
         names = dof_names(model)
         offsets = bias[:, problem.bias_of[MODEL_ERROR]].T
         model_error = {names[dof]: e for dof, e in zip(problem.error_dofs, offsets, strict=True)}
-    residuals, cost_by_type = residuals_by_type(problem, qpos, bias)
+    rows, cost_by_type = residuals_by_type(problem, qpos, bias) if residuals else ({}, {})
     return Estimate(
         t_ns=problem.t_ns,
         h=h,
@@ -560,8 +595,8 @@ def collect_estimate(
         model_name=config.model,
         imu_bias=imu_bias,
         model_error=model_error,
-        residuals=residuals,
-        residual_labels=residual_labels(problem, residuals),
+        residuals=rows,
+        residual_labels=residual_labels(problem, rows),
         cost_by_type=cost_by_type,
     )
 

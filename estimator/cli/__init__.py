@@ -25,6 +25,11 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "estimator.cli.evaluate",
         "errors of an estimate against ground truth, or of a held-out sensor's prediction",
     ),
+    "stream": (
+        "estimator.cli.stream",
+        "estimate a live robot as its messages arrive (fixed-lag smoothing)",
+    ),
+    "replay": ("estimator.cli.replay", "serve a recording as a live MCAP stream at its pace"),
 }
 
 

@@ -43,7 +43,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any, NamedTuple
+from typing import IO, TYPE_CHECKING, Any, NamedTuple, cast
 
 import mujoco
 import numpy as np
@@ -88,12 +88,38 @@ SENSOR_QOS = qos_profile("best_effort")
 RELIABLE_QOS = qos_profile("reliable")
 
 
+class Positioned:
+    """A pipe or socket that tells its position (the bytes written), as the MCAP writer asks."""
+
+    def __init__(self, out: IO[bytes]) -> None:
+        self.out, self.position = out, 0
+
+    def write(self, data: bytes) -> int:
+        self.out.write(data)
+        self.position += len(data)
+        return len(data)
+
+    def tell(self) -> int:
+        return self.position
+
+    def flush(self) -> None:
+        self.out.flush()
+
+
+def _seekable(f: IO[bytes]) -> bool:
+    try:
+        return f.seekable()
+    except (AttributeError, ValueError):
+        return False
+
+
 class Ros2Writer:
     """A rosbag2-layout MCAP writer (profile ros2, ros2msg schemas, cdr, QoS metadata).
 
     output: a path or a binary file object (left open). compression: "zstd", "lz4" or
     "none" chunk compression. The file's bytes depend only on what is written (no wall-clock
-    times), so equal inputs give equal files.
+    times), so equal inputs give equal files. chunked=False writes each message as its own
+    record (a live stream: what `flush` pushed out reads back even if the writer is killed).
     """
 
     def __init__(
@@ -102,6 +128,7 @@ class Ros2Writer:
         *,
         compression: str = "zstd",
         chunk_size: int = 1024 * 1024,
+        chunked: bool = True,
     ) -> None:
         codecs = {
             "zstd": CompressionType.ZSTD,
@@ -115,7 +142,10 @@ class Ros2Writer:
             else output
         )
         self._writer = McapWriter(
-            self._file, chunk_size=chunk_size, compression=codecs[compression]
+            self._file if _seekable(self._file) else cast(IO[bytes], Positioned(self._file)),
+            chunk_size=chunk_size,
+            compression=codecs[compression],
+            use_chunking=chunked,
         )
         self._writer.start(profile="ros2", library="physfuse")
         self._schemas: dict[str, tuple[Schema, EncoderFunction]] = {}
@@ -165,6 +195,10 @@ class Ros2Writer:
     def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
         """A metadata record (name → string pairs), e.g. the simulation's settings."""
         self._writer.add_metadata(name, dict(data))
+
+    def flush(self) -> None:
+        """Push what was written to the file or stream (unchunked: every message so far)."""
+        self._file.flush()
 
     def finish(self) -> None:
         """Write the summary and close the file (if this writer opened it)."""
@@ -510,9 +544,10 @@ def _covariance(table: Mapping[str, np.ndarray] | None, body: str) -> list[float
 
 class EstimateWriter:
     """An estimate in the `/estimate/...` layout, knot by knot: a batch run writes every knot
-    at once, a streaming run each as it is final. Each IMU stream's bias goes to
-    `/estimate/imu_bias/<stream>` (frame: its site); metadata `physfuse.estimate` names the
-    model, the knot spacing and the run (`run_id`, also in summary.json).
+    at once, a streaming run each as it is final (`chunked=False`, `flush` after each update;
+    its smoothed knots under another prefix, `/estimate_smoothed`). Each IMU stream's bias
+    goes to `<prefix>/imu_bias/<stream>` (frame: its site); metadata `physfuse.estimate` names
+    the model, the knot spacing and the run (`run_id`, also in summary.json).
 
         with EstimateWriter(path, model, est.model_name, est.h, run_id) as out:
             out.write(est, range(est.T), {"imu": "imu_site"})
@@ -525,6 +560,7 @@ class EstimateWriter:
         model_name: str,
         h: float,
         run_id: str = "",
+        chunked: bool = True,
     ) -> None:
         self.model = model
         self.layout = StateLayout.of(model)
@@ -532,15 +568,21 @@ class EstimateWriter:
         self.free = [
             j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE
         ]
-        self.writer = Ros2Writer(output)
+        self.writer = Ros2Writer(output, chunked=chunked)
         self.writer.add_metadata(
             "physfuse.estimate", {"model": model_name, "h": repr(h), "run_id": run_id}
         )
         self.message_count = 0
 
-    def write(self, est: Estimate, knots: range, imu_sites: Mapping[str, str] | None = None) -> int:
+    def write(
+        self,
+        est: Estimate,
+        knots: range,
+        imu_sites: Mapping[str, str] | None = None,
+        prefix: str = "/estimate",
+    ) -> int:
         """Knots `knots` of an `Estimate` (qpos, qvel, qpos_std, qfrc_inverse, constraints,
-        imu_bias); returns the messages written."""
+        imu_bias) under `prefix`; returns the messages written."""
         model, data, sites = self.model, self.data, imu_sites or {}
         count = 0
         for k in knots:
@@ -553,7 +595,7 @@ class EstimateWriter:
             t_ns = int(est.t_ns[k])
             count += write_state(
                 self.writer,
-                "/estimate",
+                prefix,
                 t_ns,
                 model,
                 data,
@@ -563,11 +605,14 @@ class EstimateWriter:
                 layout=self.layout,
             )
             for stream, bias in est.imu_bias.items():
-                m = imu_bias_message("/estimate", stream, t_ns, sites.get(stream, ""), bias[k])
+                m = imu_bias_message(prefix, stream, t_ns, sites.get(stream, ""), bias[k])
                 self.writer.write(m.topic, m.msg_type, m.fields, m.log_time_ns)
                 count += 1
         self.message_count += count
         return count
+
+    def flush(self) -> None:
+        self.writer.flush()
 
     def close(self) -> None:
         self.writer.finish()

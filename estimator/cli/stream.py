@@ -1,0 +1,244 @@
+"""`physfuse stream`: estimate a live robot as its messages arrive (fixed-lag smoothing).
+
+    physfuse replay recordings/humanoid_push.mcap --to tcp://127.0.0.1:9000 &
+    physfuse stream --config configs/humanoid_push.toml --source tcp://127.0.0.1:9000 \\
+        --out out/live.mcap
+
+A reader thread takes messages off the source as they arrive; the main thread pushes them
+into the `Stream` and solves whatever knots are ready whenever it is free, so that a slow
+solve takes more knots next time instead of falling behind message by message. Every
+update writes the newest knots under `/estimate/...` and the knots that left the lag under
+`/estimate_smoothed/...`, and flushes: the file reads back up to the last update even if
+the process is killed. SIGINT and SIGTERM end the run with the window smoothed and the
+file closed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import queue
+import signal
+import sys
+import threading
+import time
+import uuid
+from collections import deque
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from estimator.config import load_config
+from estimator.errors import ConfigError, LogError
+from estimator.io.live import messages
+from estimator.io.mcap_writer import EstimateWriter
+from estimator.model_checks import check_for_estimate
+from estimator.settings import Settings
+from estimator.stream import Stream, Update
+
+STATUS_EVERY_S = 1.0
+SMOOTHED_PREFIX = "/estimate_smoothed"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", type=Path, required=True, help="TOML config (configs/)")
+    parser.add_argument(
+        "--source",
+        required=True,
+        help="- (an MCAP byte stream on stdin), tcp://HOST:PORT (a replay or a robot's MCAP "
+        "stream; reconnected when it breaks off) or an MCAP file still being written",
+    )
+    parser.add_argument(
+        "--lag", type=float, default=0.5, metavar="S", help="fixed lag, s (default 0.5)"
+    )
+    parser.add_argument("--out", type=Path, help="MCAP file of the estimate (newest and smoothed)")
+    parser.add_argument(
+        "--iterations",
+        type=int,
+        default=2,
+        help="Levenberg–Marquardt iterations per update (default 2)",
+    )
+    parser.add_argument(
+        "--stale",
+        type=float,
+        default=0.25,
+        metavar="S",
+        help="a stream this far behind the others stops holding knots back, s (default 0.25)",
+    )
+    parser.add_argument(
+        "--reconnect",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="give up on a TCP source after S s without a connection (default 10)",
+    )
+    parser.add_argument(
+        "--stats", type=Path, help="JSON of the run: latencies, backlog, solve times, counts"
+    )
+    parser.add_argument("--quiet", action="store_true", help="no status line")
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    if args.lag <= 0 or args.stale <= 0 or args.iterations < 1:
+        raise ConfigError("--lag and --stale must be > 0 s and --iterations ≥ 1")
+    settings = replace(
+        Settings.from_config(config), max_iterations=args.iterations, fit_softness="none"
+    )
+    check_for_estimate(config, settings)
+    if args.out is not None and not args.out.parent.is_dir():
+        raise LogError(f"--out {args.out}: no such folder {args.out.parent}")
+    stream = Stream(config, settings, lag_s=args.lag, stale_s=args.stale)
+    model = config.load_model()
+    imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
+    writer = None
+    if args.out is not None:
+        writer = EstimateWriter(
+            args.out, model, config.model, stream.h, str(uuid.uuid4()), chunked=False
+        )
+    status = Status(args.quiet)
+    stop = threading.Event()
+    inbox: queue.Queue[Any] = queue.Queue()
+    reader = threading.Thread(
+        target=_read, args=(args.source, stop, args.reconnect, inbox, status), daemon=True
+    )
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    interrupted = False
+    try:
+        reader.start()
+        done = False
+        while not done:
+            try:
+                done = _drain(inbox, stream, status)
+                for update in stream.update():
+                    status.add(update, stream)
+                    _write(writer, update, imu_sites)
+                status.show(stream)
+            except KeyboardInterrupt:
+                interrupted = True
+                break
+    finally:
+        stop.set()
+        signal.signal(signal.SIGTERM, previous)
+        try:
+            for update in stream.close():
+                status.add(update, stream)
+                _write(writer, update, imu_sites)
+        finally:
+            if writer is not None:
+                writer.close()
+    status.show(stream, final=True)
+    if args.stats is not None:
+        args.stats.write_text(json.dumps(status.report(stream), indent=2) + "\n")
+    if status.error:
+        print(f"physfuse stream: error: {status.error}", file=sys.stderr)
+        return 2
+    return 130 if interrupted else 0
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def _read(
+    source: str, stop: threading.Event, reconnect_s: float, inbox: queue.Queue, status: Status
+) -> None:
+    """The reader thread: messages onto `inbox` as they arrive, then None."""
+    try:
+        for item in messages(source, stop, reconnect_s, log=status.log):
+            inbox.put(item)
+    except (LogError, OSError) as err:
+        status.error = str(err)
+    finally:
+        inbox.put(None)
+
+
+def _drain(inbox: queue.Queue, stream: Stream, status: Status) -> bool:
+    """Push every message waiting (waiting up to 50 ms for the first); True at the end."""
+    try:
+        item = inbox.get(timeout=0.05)
+    except queue.Empty:
+        return False
+    while True:
+        if item is None:
+            return True
+        raw, arrival = item
+        stream.push(raw, arrival)
+        status.received += 1
+        try:
+            item = inbox.get_nowait()
+        except queue.Empty:
+            return False
+
+
+def _write(writer: EstimateWriter | None, update: Update, imu_sites: dict[str, str]) -> None:
+    if writer is None:
+        return
+    writer.write(update.estimate, update.newest, imu_sites)
+    writer.write(update.estimate, update.smoothed, imu_sites, prefix=SMOOTHED_PREFIX)
+    writer.flush()
+
+
+class Status:
+    """The terminal's status line and the run's statistics (`--stats`)."""
+
+    def __init__(self, quiet: bool) -> None:
+        self.quiet = quiet
+        self.start = time.perf_counter()
+        self.last_shown = self.start
+        self.received = 0
+        self.latency: list[float] = []
+        self.backlog: list[int] = []
+        self.solve: list[float] = []
+        self.recent: deque[float] = deque(maxlen=500)
+        self.lines: deque[str] = deque(maxlen=3)  # the latest source events and warnings
+        self.error = ""
+        self.lock = threading.Lock()
+
+    def log(self, line: str) -> None:
+        with self.lock:
+            self.lines.append(line)
+        if not self.quiet:
+            print(f"physfuse stream: {line}", file=sys.stderr)
+
+    def add(self, update: Update, stream: Stream) -> None:
+        self.latency += update.latency_s
+        self.recent.extend(update.latency_s)
+        self.backlog.append(update.backlog)
+        self.solve.append(update.solve_s)
+        if update.event:
+            self.log(update.event)
+
+    def show(self, stream: Stream, final: bool = False) -> None:
+        now = time.perf_counter()
+        if self.quiet or (not final and now - self.last_shown < STATUS_EVERY_S):
+            return
+        self.last_shown = now
+        c = stream.counts
+        wall = max(now - self.start, 1e-9)
+        bad = sum(b.total for b in stream.bad_counts.values())
+        p50, p99 = (np.percentile(self.recent, (50, 99)) * 1e3) if self.recent else (np.nan,) * 2
+        line = (
+            f"in {self.received / wall:.0f} msg/s, out {c.knots_newest / wall:.0f} knots/s | "
+            f"latency p50 {p50:.0f} ms p99 {p99:.0f} ms | backlog "
+            f"{self.backlog[-1] if self.backlog else 0} | late {c.late} bad {bad} | "
+            f"divergences {c.divergences}"
+        )
+        print(("done: " if final else "") + line, file=sys.stderr)
+
+    def report(self, stream: Stream) -> dict[str, Any]:
+        lat = np.array(self.latency)
+        return {
+            "wall_s": time.perf_counter() - self.start,
+            "messages": self.received,
+            "latency_s": self.latency,
+            "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
+            "latency_p99_s": float(np.percentile(lat, 99)) if len(lat) else None,
+            "backlog": self.backlog,
+            "solve_s": self.solve,
+            "counts": asdict(stream.counts),
+            "bad": {name: b.as_dict() for name, b in stream.bad_counts.items()},
+            "knot_s": stream.h,
+        }

@@ -1,0 +1,199 @@
+"""Live sources and the replay server: MCAP byte streams from stdin, a TCP socket or a file
+still being written, and a recording served at its own pace.
+
+    for raw, arrival in messages("tcp://127.0.0.1:9000", stop):    # reconnects with backoff
+        stream.push(raw, arrival)
+
+    replay("recordings/humanoid_push.mcap", "tcp://127.0.0.1:9000", rate=1.0)
+
+A source yields `RawMessage`s as their bytes arrive (`estimator.io.logs.source.open_stream`);
+a TCP stream that breaks off mid-record or before its footer is reconnected with backoff
+(0.1 s doubling to 2 s, for up to `reconnect_s` without a connection), one that ends with
+its footer ends the source. The replay server writes each message as its own record and
+flushes it (an unchunked MCAP), at its log time divided by `rate` after the first (rate 0:
+as fast as the reader takes them).
+"""
+
+from __future__ import annotations
+
+import io
+import socket
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import IO, cast
+from urllib.parse import urlsplit
+
+from mcap.writer import Writer
+
+from estimator.errors import LogError
+from estimator.io.logs.source import RawMessage, open_log, open_stream
+from estimator.io.mcap_writer import Positioned
+
+BACKOFF_S = (0.1, 2.0)  # first and longest wait between connection attempts
+
+
+def parse_address(spec: str, what: str) -> tuple[str, int]:
+    """(host, port) of "tcp://HOST:PORT" (LogError naming `what` otherwise)."""
+    url = urlsplit(spec)
+    try:
+        port = url.port
+    except ValueError:
+        port = None
+    if url.scheme != "tcp" or port is None:
+        raise LogError(f"{what} {spec!r}: expected tcp://HOST:PORT, '-' or a file")
+    return url.hostname or "127.0.0.1", port
+
+
+def messages(
+    spec: str,
+    stop: threading.Event,
+    reconnect_s: float = 10.0,
+    follow_s: float = 2.0,
+    log: Callable[[str], None] = lambda line: print(line, file=sys.stderr),
+) -> Iterator[tuple[RawMessage, float]]:
+    """(message, arrival time on `time.perf_counter`) from a live source: "-" (stdin),
+    "tcp://HOST:PORT" (a replay server, a robot's MCAP stream), or a file being written
+    (followed until it has not grown for `follow_s`). `log` gets one line per connection
+    event and per problem with the bytes."""
+    if spec == "-":
+        yield from _read(open_stream(sys.stdin.buffer, "<stdin>"), stop)
+        return
+    if spec.startswith("tcp://"):
+        yield from _tcp(spec, stop, reconnect_s, log)
+        return
+    path = Path(spec)
+    if not path.exists():
+        raise LogError(f"source {spec!r}: no such file (expected '-', tcp://HOST:PORT or a file)")
+    with path.open("rb") as f:
+        source = open_stream(cast(IO[bytes], _Growing(f, follow_s, stop)), str(path))
+        yield from _read(source, stop)
+        for line in source.warnings:
+            log(line)
+
+
+def _read(
+    source: Iterable[RawMessage], stop: threading.Event
+) -> Iterator[tuple[RawMessage, float]]:
+    for raw in source:
+        yield raw, time.perf_counter()
+        if stop.is_set():
+            return
+
+
+def _tcp(
+    spec: str, stop: threading.Event, reconnect_s: float, log: Callable[[str], None]
+) -> Iterator[tuple[RawMessage, float]]:
+    host, port = parse_address(spec, "source")
+    wait, since = BACKOFF_S[0], time.monotonic()
+    while not stop.is_set():
+        try:
+            sock = socket.create_connection((host, port), timeout=1.0)
+        except OSError as err:
+            if time.monotonic() - since > reconnect_s:
+                log(f"source {spec}: no connection for {reconnect_s:g} s ({err}); giving up")
+                return
+            time.sleep(wait)
+            wait = min(2 * wait, BACKOFF_S[1])
+            continue
+        sock.settimeout(None)
+        log(f"source {spec}: connected")
+        wait = BACKOFF_S[0]
+        with sock, sock.makefile("rb") as f:
+            source = open_stream(f, spec)
+            try:
+                yield from _read(source, stop)
+            except (OSError, LogError) as err:  # reset by the peer, or not an MCAP stream
+                source.warn(f"{spec}: {err}", truncated=True)
+        for line in source.warnings:
+            log(f"source {line}")
+        if not source.truncated:  # the stream ended with its footer: the end of the run
+            return
+        log(f"source {spec}: disconnected mid-stream; reconnecting")
+        since = time.monotonic()
+
+
+class _Growing(io.RawIOBase):
+    """A file still being written, read as a stream: at its end, wait for more bytes until
+    it has not grown for `idle_s` (or `stop` is set)."""
+
+    def __init__(self, f: IO[bytes], idle_s: float, stop: threading.Event) -> None:
+        self.f, self.idle_s, self.stop = f, idle_s, stop
+
+    def readable(self) -> bool:
+        return True
+
+    def read(self, n: int = -1) -> bytes:
+        last = time.monotonic()
+        while True:
+            data = self.f.read(n)
+            if data or self.stop.is_set() or time.monotonic() - last > self.idle_s:
+                return data
+            time.sleep(0.01)
+
+
+# -- the replay server ------------------------------------------------------------------------
+
+
+def replay(
+    log_path: str | Path,
+    to: str,
+    rate: float = 1.0,
+    ready: Callable[[int], None] | None = None,
+    topics: list[str] | None = None,
+) -> int:
+    """Serve a recording as a live MCAP byte stream at `rate` × its pace: to "-" (stdout) or
+    "tcp://HOST:PORT" (listens; serves the first client that connects; port 0: any free
+    one, passed to `ready`). Returns the messages sent."""
+    if to == "-":
+        return _send(log_path, sys.stdout.buffer, rate, topics)
+    host, port = parse_address(to, "--to")
+    with socket.create_server((host, port)) as server:
+        if ready is not None:
+            ready(server.getsockname()[1])
+        conn, _ = server.accept()
+        with conn:
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            with conn.makefile("wb") as out:
+                try:
+                    return _send(log_path, out, rate, topics)
+                except (BrokenPipeError, ConnectionResetError):
+                    return 0
+
+
+def _send(log_path: str | Path, out: IO[bytes], rate: float, topics: list[str] | None) -> int:
+    source = open_log(log_path, topics=topics)
+    writer = Writer(cast(IO[bytes], Positioned(out)), use_chunking=False)
+    writer.start(profile="ros2", library="physfuse replay")
+    schemas: dict[str, int] = {}
+    channels: dict[str, int] = {}
+    start_wall: float | None = None
+    start_log = 0
+    sent = 0
+    for raw in source:
+        if start_wall is None:
+            start_wall, start_log = time.perf_counter(), raw.log_time_ns
+        if rate > 0:
+            due = start_wall + (raw.log_time_ns - start_log) / 1e9 / rate
+            delay = due - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+        channel = channels.get(raw.topic)
+        if channel is None:
+            schema = 0
+            if raw.schema is not None:
+                schema = schemas.get(raw.msg_type) or writer.register_schema(
+                    raw.schema.name, raw.schema.encoding, raw.schema.data
+                )
+                schemas[raw.msg_type] = schema
+            channel = channels[raw.topic] = writer.register_channel(
+                raw.topic, raw.message_encoding, schema
+            )
+        writer.add_message(channel, raw.log_time_ns, raw.data, raw.log_time_ns)
+        out.flush()
+        sent += 1
+    writer.finish()
+    out.flush()
+    return sent

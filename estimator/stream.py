@@ -1,0 +1,269 @@
+"""A live robot's messages in, its estimate out: the fixed-lag smoother fed as samples arrive.
+
+    stream = Stream(config, Settings.from_config(config), lag_s=0.5)
+    for raw in source:                       # RawMessage (estimator.io.logs), in arrival order
+        stream.push(raw)                     # decoded, checked, buffered
+        for update in stream.update():       # the knots that became ready, solved
+            update.estimate, update.newest, update.smoothed
+    stream.close()                           # the end: the rest of the window, smoothed
+
+Knots lie on a grid of step h from the first sample (commands excluded), as for a whole
+log; solving starts once every mapped stream has spoken (a stream still silent `stale_s`
+after the first is left out). Key k is ready once
+every live stream has a sample at or after t_k: a stream whose newest sample is more than
+`stale_s` behind the newest of all stops holding the knots back (a sensor that stopped), and
+its samples older than the window are counted late and dropped. Latency is measured from the
+arrival of the sample that made a knot ready to the update that publishes its newest estimate.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estimator.config import Config
+from estimator.estimate import Estimate
+from estimator.io.logs.measurements import (
+    STREAM_COMPONENTS,
+    BadSampleCounts,
+    Measurement,
+    Sample,
+)
+from estimator.io.logs.samples import SampleExtractor
+from estimator.io.logs.source import RawMessage
+from estimator.problem import model_with_sensors
+from estimator.run import WINDOW_MARGIN_NS
+from estimator.settings import Settings
+from estimator.solver.fixed_lag import FixedLag, LagStep
+
+
+@dataclass(frozen=True)
+class Update:
+    """What one solve publishes. estimate: the window's knots; newest / smoothed: indices
+    into it (`LagStep`); latency_s: per newest knot, from the arrival of the sample that made
+    it ready to now; backlog: knots ready and not yet solved when the solve started."""
+
+    estimate: Estimate
+    newest: range
+    smoothed: range
+    latency_s: list[float]
+    backlog: int
+    solve_s: float
+    event: str = ""  # a divergence detected, and what was done
+
+
+@dataclass
+class Counts:
+    """The node's running counts, for the status line and the end of the run."""
+
+    messages: int = 0  # messages pushed
+    samples: int = 0  # accepted samples
+    late: int = 0  # samples older than the window when they arrived (dropped)
+    knots_newest: int = 0
+    knots_smoothed: int = 0
+    updates: int = 0
+    divergences: int = 0
+    events: list[str] = field(default_factory=list)
+
+
+class _Buffer:
+    """One stream's samples since the window's margin, appended in time order."""
+
+    def __init__(self, name: str, kind: str) -> None:
+        self.name, self.kind = name, kind
+        self.t: list[int] = []
+        self.log_t: list[int] = []
+        self.values: list[np.ndarray] = []
+
+    def add(self, s: Sample) -> None:
+        self.t.append(s.t_ns)
+        self.log_t.append(s.log_time_ns)
+        self.values.append(s.values)
+
+    def trim(self, before_ns: int) -> None:
+        """Drop the samples before `before_ns`, keeping the last one before it (a held
+        command)."""
+        i = int(np.searchsorted(self.t, before_ns)) - 1
+        if i > 0:
+            del self.t[:i], self.log_t[:i], self.values[:i]
+
+
+class Stream:
+    """The streaming estimator: samples in, fixed-lag estimates out (`estimator.solver.
+    fixed_lag`).
+
+    lag_s: how long a knot stays in the window before its estimate is final (smoothed).
+    stale_s: a stream this far behind the newest sample stops holding knots back.
+    clock: the time of arrival of a pushed message (seconds; `time.perf_counter`).
+    """
+
+    def __init__(
+        self,
+        config: Config,
+        settings: Settings,
+        lag_s: float = 0.5,
+        stale_s: float = 0.25,
+        clock: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        self.config, self.settings, self.clock = config, settings, clock
+        self.compiled = model_with_sensors(config)
+        self.model = self.compiled[0]
+        self.h = settings.h or float(self.model.opt.timestep)
+        self.step_ns = round(self.h * 1e9)
+        self.lag_knots = max(1, round(lag_s / self.h))
+        self.stale_ns = round(stale_s * 1e9)
+        self.extractor = SampleExtractor(config, keep_times=False)
+        self.buffers = {name: _Buffer(name, s.kind) for name, s in config.streams.items()}
+        self.first_t: dict[str, int] = {}
+        self.last_t: dict[str, int] = {}
+        self.lag: FixedLag | None = None
+        self.ready_until = -1  # the newest ready key (global)
+        self.solved_until = -1  # the newest key solved
+        self.ready_at: dict[int, float] = {}  # key → arrival time of the sample that readied it
+        self.counts = Counts()
+
+    # -- in --------------------------------------------------------------------------------
+
+    def push(self, raw: RawMessage, arrival: float | None = None) -> None:
+        """One message as it arrived (decoded, checked and buffered; malformed ones counted
+        in `bad_counts`)."""
+        self.counts.messages += 1
+        arrival = self.clock() if arrival is None else arrival
+        for sample in self.extractor.feed(raw):
+            self.push_sample(sample, arrival)
+
+    def push_sample(self, sample: Sample, arrival: float | None = None) -> None:
+        """One decoded sample (a user's node that decodes its own messages)."""
+        arrival = self.clock() if arrival is None else arrival
+        lag = self.lag
+        if lag is not None and sample.t_ns < lag.t_ns(lag.first, lag.first + 1)[0]:
+            self.counts.late += 1  # its knots have left the window
+            return
+        self.counts.samples += 1
+        self.buffers[sample.stream].add(sample)
+        self.first_t.setdefault(sample.stream, sample.t_ns)
+        self.last_t[sample.stream] = sample.t_ns
+        self._advance_ready(arrival)
+
+    @property
+    def bad_counts(self) -> Mapping[str, BadSampleCounts]:
+        """Messages skipped per stream so far (malformed, out of order, ...)."""
+        return self.extractor.bad_counts()
+
+    # -- out -------------------------------------------------------------------------------
+
+    def update(self) -> Iterator[Update]:
+        """Solve the keys that became ready since the last update: one solve for all of
+        them, or (a backlog) one per `lag_knots` new keys, so that a window never grows
+        past twice the lag."""
+        while self.lag is not None and self.ready_until > self.solved_until:
+            start = self.clock()
+            backlog = self.ready_until - self.solved_until
+            last = min(self.ready_until, self.solved_until + self.lag_knots)
+            step = self.lag.advance(self._measurements(), last)
+            self.solved_until = last
+            if step is not None:
+                yield self._published(step, backlog, start)
+
+    def close(self) -> Iterator[Update]:
+        """The end of the stream: the samples held for their time check, a last update, and
+        the window's remaining knots smoothed."""
+        arrival = self.clock()
+        for sample in self.extractor.flush():
+            self.push_sample(sample, arrival)
+        yield from self.update()
+        if self.lag is None:
+            return
+        start = self.clock()
+        step = self.lag.finish(self._measurements())
+        if step is not None:
+            yield self._published(step, 0, start)
+
+    # -- the knot grid ---------------------------------------------------------------------
+
+    def _advance_ready(self, arrival: float) -> None:
+        tracked = {
+            name: t for name, t in self.last_t.items() if self.buffers[name].kind != "command"
+        }
+        if not tracked:
+            return
+        newest = max(tracked.values())
+        if self.lag is None:
+            self._start(newest)
+            if self.lag is None:
+                return
+        live = [t for t in tracked.values() if t >= newest - self.stale_ns]
+        watermark = min(live)
+        ready = (watermark - self.lag.t0_ns) // self.step_ns
+        for k in range(self.ready_until + 1, ready + 1):
+            self.ready_at[k] = arrival
+        self.ready_until = max(self.ready_until, int(ready))
+
+    def _start(self, newest: int) -> None:
+        """The grid starts once every mapped stream (commands aside) has a sample, or
+        `stale_s` after the first did: at the first sample, as `knot_grid` starts a log."""
+        waiting = [
+            name
+            for name, b in self.buffers.items()
+            if b.kind != "command" and name not in self.first_t
+        ]
+        earliest = min(t for n, t in self.first_t.items() if self.buffers[n].kind != "command")
+        if waiting and newest - earliest < self.stale_ns:
+            return
+        if waiting:
+            self.counts.events.append(
+                f"started without {', '.join(waiting)} (silent {self.stale_ns / 1e9:g} s after "
+                "the first stream)"
+            )
+        self.lag = FixedLag(self.config, self.settings, self.compiled, earliest, self.lag_knots)
+
+    def _measurements(self) -> dict[str, Measurement]:
+        """The buffered samples around the window, as the batch reader's arrays."""
+        assert self.lag is not None
+        keep_from = int(self.lag.t_ns(self.lag.first, self.lag.first + 1)[0]) - WINDOW_MARGIN_NS
+        out = {}
+        bad = self.extractor.bad_counts()
+        for name, stream in self.config.streams.items():
+            b = self.buffers[name]
+            b.trim(keep_from)
+            components = STREAM_COMPONENTS[stream.kind]
+            values = (
+                np.stack(b.values)
+                if b.values
+                else np.zeros((0, len(stream.elements), len(components)))
+            )
+            out[name] = Measurement(
+                stream=name,
+                kind=stream.kind,
+                topic=stream.topic,
+                element_type=stream.element_type,
+                elements=stream.elements,
+                components=components,
+                t_ns=np.array(b.t, dtype=np.int64),
+                log_time_ns=np.array(b.log_t, dtype=np.int64),
+                values=values,
+                bad=bad.get(name, BadSampleCounts()),
+            )
+        return out
+
+    def _published(self, step: LagStep, backlog: int, start: float) -> Update:
+        now = self.clock()
+        latency = [now - self.ready_at.pop(step.first + i, now) for i in step.newest]
+        for k in [k for k in self.ready_at if k < step.first]:  # (keys solved unpublished)
+            del self.ready_at[k]
+        c = self.counts
+        c.updates += 1
+        c.knots_newest += len(step.newest)
+        c.knots_smoothed += len(step.smoothed)
+        event = ""
+        if step.diverged:
+            c.divergences += 1
+            t = step.estimate.t_ns[-1] / 1e9
+            event = f"divergence at {t:.3f} s: {step.diverged}; window reset from the measurements"
+            c.events.append(event)
+        return Update(
+            step.estimate, step.newest, step.smoothed, latency, backlog, now - start, event
+        )
