@@ -32,7 +32,7 @@ import numpy as np
 
 from estimator.config import load_config
 from estimator.errors import ConfigError, LogError
-from estimator.io.live import messages
+from estimator.io.live import check_source, messages
 from estimator.io.mcap_writer import EstimateWriter
 from estimator.model_checks import check_for_estimate
 from estimator.settings import Settings
@@ -88,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
         Settings.from_config(config), max_iterations=args.iterations, fit_softness="none"
     )
     check_for_estimate(config, settings)
+    check_source(args.source)
     if args.out is not None and not args.out.parent.is_dir():
         raise LogError(f"--out {args.out}: no such folder {args.out.parent}")
     stream = Stream(config, settings, lag_s=args.lag, stale_s=args.stale)

@@ -47,6 +47,16 @@ def parse_address(spec: str, what: str) -> tuple[str, int]:
     return url.hostname or "127.0.0.1", port
 
 
+def check_source(spec: str) -> None:
+    """A source spec that cannot be one: LogError naming it (before anything starts)."""
+    if spec == "-":
+        return
+    if "://" in spec:
+        parse_address(spec, "--source")
+    elif not Path(spec).exists():
+        raise LogError(f"--source {spec!r}: no such file (expected '-', tcp://HOST:PORT or a file)")
+
+
 def messages(
     spec: str,
     stop: threading.Event,
@@ -88,18 +98,23 @@ def _tcp(
 ) -> Iterator[tuple[RawMessage, float]]:
     host, port = parse_address(spec, "source")
     wait, since = BACKOFF_S[0], time.monotonic()
+    connected = False
     while not stop.is_set():
         try:
             sock = socket.create_connection((host, port), timeout=1.0)
         except OSError as err:
             if time.monotonic() - since > reconnect_s:
-                log(f"source {spec}: no connection for {reconnect_s:g} s ({err}); giving up")
+                line = f"source {spec}: no connection for {reconnect_s:g} s ({err})"
+                if not connected:  # nothing ever came: the source is wrong
+                    raise LogError(line) from None
+                log(f"{line}; giving up")
                 return
             time.sleep(wait)
             wait = min(2 * wait, BACKOFF_S[1])
             continue
         sock.settimeout(None)
         log(f"source {spec}: connected")
+        connected = True
         wait = BACKOFF_S[0]
         with sock, sock.makefile("rb") as f:
             source = open_stream(f, spec)
@@ -164,7 +179,12 @@ def replay(
 
 
 def _send(log_path: str | Path, out: IO[bytes], rate: float, topics: list[str] | None) -> int:
-    source = open_log(log_path, topics=topics)
+    return send(open_log(log_path, topics=topics), out, rate)
+
+
+def send(messages: Iterable[RawMessage], out: IO[bytes], rate: float = 0.0) -> int:
+    """Write messages to `out` as an unchunked MCAP stream, each flushed as it is written, at
+    their log times divided by `rate` after the first (0: at once); returns the count."""
     writer = Writer(cast(IO[bytes], Positioned(out)), use_chunking=False)
     writer.start(profile="ros2", library="physfuse replay")
     schemas: dict[str, int] = {}
@@ -172,7 +192,7 @@ def _send(log_path: str | Path, out: IO[bytes], rate: float, topics: list[str] |
     start_wall: float | None = None
     start_log = 0
     sent = 0
-    for raw in source:
+    for raw in messages:
         if start_wall is None:
             start_wall, start_log = time.perf_counter(), raw.log_time_ns
         if rate > 0:

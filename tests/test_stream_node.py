@@ -1,0 +1,236 @@
+"""The streaming node end to end on loopback: `physfuse replay` serving a recording over a real
+TCP socket, `physfuse stream` estimating it as it arrives, and what a killed, disconnected or
+diverging node leaves behind."""
+
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from estimator.batch import estimate
+from estimator.config import load_config
+from estimator.io.live import send
+from estimator.io.logs import read_log
+from estimator.io.logs.source import RawMessage, open_log
+from estimator.io.state_topics import at_times, read_state_topics, trajectory_errors
+from estimator.settings import Settings
+from estimator.stream import Stream
+
+ROOT = Path(__file__).resolve().parent.parent
+NAME = "single_joint"  # the smallest bundled recording: 3 s, 1 500 knots
+LOG = ROOT / "recordings" / f"{NAME}.mcap"
+CONFIG = ROOT / "configs" / f"{NAME}.toml"
+PHYSFUSE = [sys.executable, "-m", "estimator.cli"]
+
+
+def _replay(rate: float) -> tuple[subprocess.Popen, int]:
+    """`physfuse replay` of the recording on a free loopback port: (process, port)."""
+    proc = subprocess.Popen(
+        [*PHYSFUSE, "replay", str(LOG), "--to", "tcp://127.0.0.1:0", "--rate", str(rate)],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stderr is not None
+    line = proc.stderr.readline()  # "physfuse replay: serving ... on port N"
+    assert "on port" in line, line
+    return proc, int(line.rsplit(" ", 1)[1])
+
+
+def _stream(source: str, out: Path, *more: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [
+            *PHYSFUSE,
+            "stream",
+            "--config",
+            str(CONFIG),
+            "--source",
+            source,
+            "--out",
+            str(out),
+            *more,
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _joint_error(path: Path, prefix: str) -> tuple[float, int]:
+    """(RMS joint error in degrees against the recording's truth, knots) of one prefix."""
+    model = load_config(CONFIG).load_model()
+    t, q = read_state_topics(path, prefix).qpos(model)
+    tg, qg = read_state_topics(LOG).qpos(model)
+    return trajectory_errors(model, q, at_times(tg, qg, t))["joint_deg"], len(t)
+
+
+@pytest.fixture(scope="module")
+def batch_joint_error() -> float:
+    config = load_config(CONFIG)
+    settings = replace(Settings.from_config(config), fit_softness="none")
+    est, _ = estimate(config, read_log(LOG, config).measurements, settings)
+    model = config.load_model()
+    tg, qg = read_state_topics(LOG).qpos(model)
+    return trajectory_errors(model, est.qpos, at_times(tg, qg, est.t_ns))["joint_deg"]
+
+
+def test_a_recording_replayed_over_tcp_is_estimated_as_it_arrives(tmp_path, batch_joint_error):
+    replay, port = _replay(rate=0)
+    out, stats = tmp_path / "live.mcap", tmp_path / "stats.json"
+    node = _stream(f"tcp://127.0.0.1:{port}", out, "--stats", str(stats), "--quiet")
+    _, err = node.communicate(timeout=300)
+    replay.wait(timeout=30)
+    assert node.returncode == 0, err
+    report = json.loads(stats.read_text())
+    knots = round(3.0 / report["knot_s"])
+    # every knot but the two ends published once newest and once smoothed
+    assert report["counts"]["knots_newest"] >= knots - 3
+    assert report["counts"]["knots_smoothed"] >= knots - 3
+    assert len(report["latency_s"]) == report["counts"]["knots_newest"]
+    newest, n_newest = _joint_error(out, "/estimate")
+    smoothed, n_smoothed = _joint_error(out, "/estimate_smoothed")
+    assert n_newest == n_smoothed == report["counts"]["knots_newest"]
+    # the smoothed estimate at 0.5 s lag is as good as the whole log's (1.0× measured)
+    assert smoothed <= 1.2 * batch_joint_error, (smoothed, batch_joint_error)
+    assert newest <= 2.0 * batch_joint_error, (newest, batch_joint_error)
+
+
+def test_a_killed_node_leaves_an_mcap_that_reads_back(tmp_path):
+    replay, port = _replay(rate=1)
+    out = tmp_path / "live.mcap"
+    node = _stream(f"tcp://127.0.0.1:{port}", out, "--quiet")
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and (not out.exists() or out.stat().st_size < 50_000):
+        time.sleep(0.05)
+    node.send_signal(signal.SIGKILL)
+    node.wait(timeout=30)
+    replay.kill()
+    replay.wait(timeout=30)
+    assert node.returncode == -signal.SIGKILL
+    model = load_config(CONFIG).load_model()
+    t, q = read_state_topics(out, "/estimate").qpos(model)  # (a truncated file: salvaged)
+    assert len(t) > 20 and np.all(np.diff(t) > 0) and np.all(np.isfinite(q))
+
+
+def test_sigterm_smooths_the_window_and_closes_the_file(tmp_path):
+    replay, port = _replay(rate=1)
+    out = tmp_path / "live.mcap"
+    node = _stream(f"tcp://127.0.0.1:{port}", out, "--quiet")
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and (not out.exists() or out.stat().st_size < 50_000):
+        time.sleep(0.05)
+    node.send_signal(signal.SIGTERM)
+    node.wait(timeout=60)
+    replay.kill()
+    replay.wait(timeout=30)
+    assert node.returncode == 130
+    with out.open("rb") as f:  # a whole MCAP: its summary and footer are there
+        reader = make_reader(f)
+        assert reader.get_summary() is not None
+        topics = {channel.topic for _, channel, _ in reader.iter_messages()}
+    assert "/estimate/joint_states" in topics and "/estimate_smoothed/joint_states" in topics
+
+
+def _halves() -> tuple[list[RawMessage], list[RawMessage]]:
+    messages = list(open_log(LOG))
+    t_mid = (messages[0].log_time_ns + messages[-1].log_time_ns) // 2
+    return [m for m in messages if m.log_time_ns < t_mid], [
+        m for m in messages if m.log_time_ns >= t_mid
+    ]
+
+
+def test_malformed_bytes_and_a_disconnect_do_not_stop_the_node(tmp_path):
+    """Connection 1: the first half of the log with 20 joint messages whose CDR is garbage,
+    then garbage bytes and a hang-up; connection 2 (the node reconnects): the second half."""
+    first, second = _halves()
+    rng = np.random.default_rng(0)
+    damaged = [i for i, m in enumerate(first) if m.topic == "/joint_states"][100:120]
+    for i in damaged:
+        first[i] = first[i]._replace(data=rng.bytes(len(first[i].data)))
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+
+    def serve() -> None:
+        with server:
+            for part, garbage in ((first, True), (second, False)):
+                conn, _ = server.accept()
+                with conn, conn.makefile("wb") as out:
+                    if garbage:  # records cut off by bytes that are no record
+                        writer_bytes = _unfinished(part)
+                        out.write(writer_bytes + rng.bytes(300))
+                    else:
+                        send(part, out)
+
+    threading.Thread(target=serve, daemon=True).start()
+    out, stats = tmp_path / "live.mcap", tmp_path / "stats.json"
+    node = _stream(f"tcp://127.0.0.1:{port}", out, "--stats", str(stats))
+    _, err = node.communicate(timeout=300)
+    assert node.returncode == 0, err
+    assert "reconnecting" in err and err.count(": connected") == 2
+    report = json.loads(stats.read_text())
+    assert report["bad"]["joints"]["undecodable"] == len(damaged)
+    # the estimate runs through both connections, to the end of the log
+    model = load_config(CONFIG).load_model()
+    t, _ = read_state_topics(out, "/estimate_smoothed").qpos(model)
+    assert t[0] - first[0].log_time_ns < 0.1e9
+    assert second[-1].log_time_ns - t[-1] < 0.1e9
+
+
+def _unfinished(messages: list[RawMessage]) -> bytes:
+    """The messages as an MCAP stream without its end (a sender that died mid-stream)."""
+    import io
+
+    buffer = io.BytesIO()
+    send(messages, buffer)
+    data = buffer.getvalue()
+    return data[: data.rfind(b"\x0f")]  # cut before the DataEnd record (opcode 0x0f)
+
+
+def test_a_divergence_is_detected_reset_and_reported():
+    """The Python API: a window whose solution went NaN is found on the next update, solved
+    again from the measurements, and the estimate goes on."""
+    config = load_config(CONFIG)
+    settings = replace(Settings.from_config(config), max_iterations=2, fit_softness="none")
+    stream = Stream(config, settings, lag_s=0.5)
+    messages = list(open_log(LOG))
+    updates = []
+    for i, raw in enumerate(messages):
+        stream.push(raw)
+        if i % 200 == 0:
+            updates += stream.update()
+        if i == len(messages) // 2:
+            assert stream.lag is not None and len(stream.lag.qpos)
+            stream.lag.qpos[:] = np.nan  # the injected divergence
+    updates += stream.close()
+    events = [u.event for u in updates if u.event]
+    assert len(events) == 1 and "divergence at" in events[0] and "reset" in events[0]
+    assert stream.counts.divergences == 1
+    after = updates[[u.event for u in updates].index(events[0]) :]
+    assert all(np.all(np.isfinite(u.estimate.qpos[u.smoothed])) for u in after)
+    model = config.load_model()
+    tg, qg = read_state_topics(LOG).qpos(model)
+    t = np.concatenate([u.estimate.t_ns[u.smoothed] for u in updates])
+    q = np.concatenate([u.estimate.qpos[u.smoothed] for u in updates])
+    assert trajectory_errors(model, q, at_times(tg, qg, t))["joint_deg"] < 0.01
+
+
+def test_a_source_that_is_not_there_is_one_line(tmp_path):
+    node = _stream("tcp://127.0.0.1:1", tmp_path / "x.mcap", "--reconnect", "0.3", "--quiet")
+    _, err = node.communicate(timeout=120)
+    assert "no connection for 0.3 s" in err and "Traceback" not in err
+    bad = _stream("udp://robot:9", tmp_path / "y.mcap")
+    _, err = bad.communicate(timeout=120)
+    assert bad.returncode == 2 and err.strip().count("\n") == 0
+    assert "expected tcp://HOST:PORT" in err
