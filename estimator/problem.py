@@ -31,7 +31,7 @@ step v_k moves through; accelerometer and force/torque over [t_k, t_k + h), wher
 from __future__ import annotations
 
 import copy
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
 import mujoco
@@ -285,12 +285,15 @@ def _known_forces(
     return known, sigma, actuated, ctrl
 
 
-def u_known_along(problem: Problem, qpos: np.ndarray) -> np.ndarray:
-    """(T, nv) u_known at every knot of a trajectory qpos (T, nq), v by finite differences."""
+def u_known_along(
+    problem: Problem, qpos: np.ndarray, knots: Iterable[int] | None = None
+) -> np.ndarray:
+    """(T, nv) u_known at every knot of a trajectory qpos (T, nq), v by finite differences
+    (at `knots` only, NaN elsewhere, when given)."""
     model, data = problem.model, mujoco.MjData(problem.model)
     v = velocities(model, qpos, problem.h)
-    out = np.empty((problem.T, model.nv))
-    for k in range(problem.T):
+    out = np.full((problem.T, model.nv), np.nan)
+    for k in range(problem.T) if knots is None else knots:
         data.qpos[:], data.qvel[:] = qpos[k], v[k]
         mujoco.mj_fwdPosition(model, data)
         mujoco.mj_fwdVelocity(model, data)

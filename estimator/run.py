@@ -558,9 +558,9 @@ def collect_estimate(
         problem.settings.contact_forces == "balanced" and problem.settings.contact_force_std > 0
     )
     force_std = problem.settings.contact_force_std * model_weight(model)
-    qfrc_known = u_known_along(problem, qpos)
-    data = mujoco.MjData(model)
     wanted = set(range(problem.T) if knots is None else knots)
+    qfrc_known = u_known_along(problem, qpos, sorted(wanted))
+    data = mujoco.MjData(model)
     for k in range(problem.T):
         if k not in wanted:
             constraints.append(_NO_CONSTRAINTS)

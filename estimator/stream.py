@@ -130,10 +130,15 @@ class Stream:
     def push(self, raw: RawMessage, arrival: float | None = None) -> None:
         """One message as it arrived (decoded, checked and buffered; malformed ones counted
         in `bad_counts`)."""
-        self.counts.messages += 1
         arrival = self.clock() if arrival is None else arrival
-        for sample in self.extractor.feed(raw):
+        for sample in self.decode(raw):
             self.push_sample(sample, arrival)
+
+    def decode(self, raw: RawMessage) -> list[Sample]:
+        """The samples of one message (`push` without buffering them: a reader thread can
+        decode while the solver runs, and hand the samples to `push_sample`)."""
+        self.counts.messages += 1
+        return self.extractor.feed(raw)
 
     def push_sample(self, sample: Sample, arrival: float | None = None) -> None:
         """One decoded sample (a user's node that decodes its own messages)."""
@@ -261,8 +266,12 @@ class Stream:
         event = ""
         if step.diverged:
             c.divergences += 1
-            t = step.estimate.t_ns[-1] / 1e9
-            event = f"divergence at {t:.3f} s: {step.diverged}; window reset from the measurements"
+            assert self.lag is not None
+            t = (step.estimate.t_ns[-1] - self.lag.t0_ns) / 1e9
+            event = (
+                f"divergence {t:.3f} s into the stream: {step.diverged}; window reset from the "
+                "measurements"
+            )
             c.events.append(event)
         return Update(
             step.estimate, step.newest, step.smoothed, latency, backlog, now - start, event

@@ -93,3 +93,26 @@ def test_a_force_sensor_predicted_through_the_contacts_enters_the_sensitivity():
     assert actual > 2e-6  # micrometres
     assert actual / 1.5 < predicted < 1.5 * actual
     assert predicted_physics < 0.3 * actual
+
+
+def test_the_reversed_system_gives_the_first_keys_marginal_std():
+    """`BandedSystem.reversed` (the keys in reverse order) has the same marginals: its last
+    keys' σ are the first keys' σ of the system, computed from the dense inverse here."""
+    from estimator.solver.banded import BandedSystem
+
+    rng = np.random.default_rng(1)
+    T, nz, span = 12, 4, 3
+    rows = rng.standard_normal((T - span + 1, 6, span * nz))  # factors on span keys each
+    H = sum(
+        np.pad(J.T @ J, ((k * nz, (T - span - k) * nz),) * 2) for k, J in enumerate(rows)
+    ) + 0.1 * np.eye(T * nz)
+    blocks = H.reshape(T, nz, T, nz).transpose(0, 2, 1, 3)  # [i, j] = H_ij
+    system = BandedSystem(
+        np.stack([blocks[k, k] for k in range(T)]),
+        [np.stack([blocks[k + d, k] for k in range(T - d)]) for d in range(1, span)],
+        np.zeros((T, nz)),
+    )
+    expected = np.sqrt(np.diag(np.linalg.inv(H))).reshape(T, nz)[:, :3]
+    first = system.reversed().marginal_std(3, [], range(T - 4, T))[::-1]
+    np.testing.assert_allclose(first[:4], expected[:4], rtol=1e-9)
+    np.testing.assert_allclose(system.marginal_std(3, [], range(0, T)), expected, rtol=1e-9)

@@ -215,7 +215,7 @@ def test_a_divergence_is_detected_reset_and_reported():
             stream.lag.qpos[:] = np.nan  # the injected divergence
     updates += stream.close()
     events = [u.event for u in updates if u.event]
-    assert len(events) == 1 and "divergence at" in events[0] and "reset" in events[0]
+    assert len(events) == 1 and "divergence 1." in events[0] and "reset" in events[0]
     assert stream.counts.divergences == 1
     after = updates[[u.event for u in updates].index(events[0]) :]
     assert all(np.all(np.isfinite(u.estimate.qpos[u.smoothed])) for u in after)
@@ -234,3 +234,40 @@ def test_a_source_that_is_not_there_is_one_line(tmp_path):
     _, err = bad.communicate(timeout=120)
     assert bad.returncode == 2 and err.strip().count("\n") == 0
     assert "expected tcp://HOST:PORT" in err
+
+
+def test_the_docs_python_example_runs(monkeypatch):
+    """docs/streaming.md's Python API example, as a user pastes it."""
+    page = (ROOT / "docs" / "streaming.md").read_text()
+    code = page.split("```python\n")[1].split("```")[0]
+    assert "from estimator.stream import Stream" in code
+    monkeypatch.chdir(ROOT)
+    scope: dict = {}
+    exec(code, scope)
+    assert scope["stream"].counts.knots_smoothed >= 1490  # 3 s at 2 ms, both ends aside
+    assert scope["final"] and len(scope["final"][-1].smoothed) > 0
+
+
+def test_derivatives_are_reused_only_near_where_they_were_taken():
+    from estimator.solver.linearize import Derivatives
+
+    kept = Derivatives(h=0.01, tol_q=1e-4)
+    q, v, a = np.zeros(7), np.zeros(6), np.zeros(6)
+    F, S = np.ones((3, 6, 6)), np.ones((3, 6, 4))
+    kept.put(5, q, v, a, F, S)
+    assert (
+        kept.get(
+            5,
+            q + 0.5e-4,
+            v + 0.5e-2,
+            a + 0.5,
+        )
+        is not None
+    )  # within tol, h, h²
+    assert kept.get(5, q + 2e-4, v, a) is None
+    assert kept.get(5, q, v + 2e-2, a) is None
+    assert kept.get(5, q, v, a + 2.0) is None
+    assert kept.get(6, q, v, a) is None
+    assert kept.get(5, q * np.nan, v, a) is None
+    kept.forget_before(6)
+    assert kept.get(5, q, v, a) is None and (kept.reused, kept.computed) == (1, 1)

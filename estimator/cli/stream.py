@@ -4,9 +4,10 @@
     physfuse stream --config configs/humanoid_push.toml --source tcp://127.0.0.1:9000 \\
         --out out/live.mcap
 
-A reader thread takes messages off the source as they arrive; the main thread pushes them
-into the `Stream` and solves whatever knots are ready whenever it is free, so that a slow
-solve takes more knots next time instead of falling behind message by message. Every
+A reader thread takes messages off the source and decodes them as they arrive (while the
+solver's MuJoCo passes run without the GIL); the main thread buffers the samples in the
+`Stream` and solves whatever knots are ready whenever it is free, so that a slow solve takes
+more knots next time instead of falling behind message by message. Every
 update writes the newest knots under `/estimate/...` and the knots that left the lag under
 `/estimate_smoothed/...`, and flushes: the file reads back up to the last update even if
 the process is killed. SIGINT and SIGTERM end the run with the window smoothed and the
@@ -103,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     inbox: queue.Queue[Any] = queue.Queue()
     reader = threading.Thread(
-        target=_read, args=(args.source, stop, args.reconnect, inbox, status), daemon=True
+        target=_read, args=(args.source, stop, args.reconnect, inbox, stream, status), daemon=True
     )
     previous = signal.signal(signal.SIGTERM, _interrupt)
     interrupted = False
@@ -113,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
         while not done:
             try:
                 done = _drain(inbox, stream, status)
+                status.queued.append(inbox.qsize())
                 for update in stream.update():
                     status.add(update, stream)
                     _write(writer, update, imu_sites)
@@ -144,12 +146,18 @@ def _interrupt(signum: int, frame: object) -> None:
 
 
 def _read(
-    source: str, stop: threading.Event, reconnect_s: float, inbox: queue.Queue, status: Status
+    source: str,
+    stop: threading.Event,
+    reconnect_s: float,
+    inbox: queue.Queue,
+    stream: Stream,
+    status: Status,
 ) -> None:
-    """The reader thread: messages onto `inbox` as they arrive, then None."""
+    """The reader thread: each message's samples onto `inbox` as it arrives (decoded here,
+    while the solver's MuJoCo passes run without the GIL), then None."""
     try:
-        for item in messages(source, stop, reconnect_s, log=status.log):
-            inbox.put(item)
+        for raw, arrival in messages(source, stop, reconnect_s, log=status.log):
+            inbox.put((stream.decode(raw), arrival))
     except (LogError, OSError) as err:
         status.error = str(err)
     finally:
@@ -165,8 +173,9 @@ def _drain(inbox: queue.Queue, stream: Stream, status: Status) -> bool:
     while True:
         if item is None:
             return True
-        raw, arrival = item
-        stream.push(raw, arrival)
+        samples, arrival = item
+        for sample in samples:
+            stream.push_sample(sample, arrival)
         status.received += 1
         try:
             item = inbox.get_nowait()
@@ -193,6 +202,7 @@ class Status:
         self.latency: list[float] = []
         self.backlog: list[int] = []
         self.solve: list[float] = []
+        self.queued: list[int] = []  # messages waiting when the solver took the ready knots
         self.recent: deque[float] = deque(maxlen=500)
         self.lines: deque[str] = deque(maxlen=3)  # the latest source events and warnings
         self.error = ""
@@ -224,7 +234,8 @@ class Status:
         line = (
             f"in {self.received / wall:.0f} msg/s, out {c.knots_newest / wall:.0f} knots/s | "
             f"latency p50 {p50:.0f} ms p99 {p99:.0f} ms | backlog "
-            f"{self.backlog[-1] if self.backlog else 0} | late {c.late} bad {bad} | "
+            f"{self.backlog[-1] if self.backlog else 0} knots, "
+            f"{self.queued[-1] if self.queued else 0} messages | late {c.late} bad {bad} | "
             f"divergences {c.divergences}"
         )
         print(("done: " if final else "") + line, file=sys.stderr)
@@ -238,6 +249,7 @@ class Status:
             "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
             "latency_p99_s": float(np.percentile(lat, 99)) if len(lat) else None,
             "backlog": self.backlog,
+            "queued": self.queued,
             "solve_s": self.solve,
             "counts": asdict(stream.counts),
             "bad": {name: b.as_dict() for name, b in stream.bad_counts.items()},

@@ -190,6 +190,17 @@ class BandedSystem:
         std[chosen] = np.sqrt(np.clip(variance[chosen - first], 0.0, None))
         return std
 
+    def reversed(self) -> BandedSystem:
+        """The same system with its keys in reverse order (key k is key T − 1 − k):
+        `marginal_std` goes from the last key down, so the first keys' σ cost only their
+        own keys in the reversed system. H'_{k+d, k} = H_{T−1−k, T−1−k−d} = (H_{T−1−k−d+d,
+        T−1−k−d})ᵀ, i.e. lower'[d] = lower[d] reversed and transposed."""
+        return BandedSystem(
+            self.diag[::-1].copy(),
+            [lo[::-1].transpose(0, 2, 1).copy() for lo in self.lower],
+            self.g[::-1].copy(),
+        )
+
     def scaled_band(self) -> tuple[np.ndarray, np.ndarray]:
         """Marquardt scaling s = diag(H)^−½ and the lower band of S H S in LAPACK storage
         (ab[i − j, j] = (S H S)_ij), unit diagonal.
@@ -259,7 +270,7 @@ def banded_inverse_blocks(L: np.ndarray, nz: int, first: int = 0) -> np.ndarray:
     t, c = np.arange(w)[:, None], np.arange(nz)[None, :]
     d = t - c
     inside = (d >= 0) & (d <= kd)
-    cols = np.arange(T)[:, None, None] * nz + c[None]
+    cols = np.arange(first, T)[:, None, None] * nz + c[None]  # (the keys asked for only)
     rows = cols + d[None]
     C = np.where(
         inside[None] & (rows < N), L[np.clip(d, 0, kd)[None], np.minimum(cols, N - 1)], 0.0
@@ -267,7 +278,7 @@ def banded_inverse_blocks(L: np.ndarray, nz: int, first: int = 0) -> np.ndarray:
     out = np.empty((T - first, nz, nz))
     W = np.zeros((w, w))  # Z over keys k … k + m (rows beyond the last key stay 0)
     for k in range(T - 1, first - 1, -1):
-        Lkk, B = C[k, :nz], C[k, nz:]
+        Lkk, B = C[k - first, :nz], C[k - first, nz:]
         sub = W[: w - nz, : w - nz]  # keys k + 1 … k + m, the previous window's first m
         X = scipy.linalg.solve_triangular(Lkk, B.T @ sub, lower=True, trans="T")
         inv_Lkk = scipy.linalg.solve_triangular(Lkk, np.eye(nz), lower=True)

@@ -30,6 +30,7 @@ from estimator.io.logs.measurements import Measurement
 from estimator.problem import build_problem
 from estimator.run import collect_estimate, initial_trajectory
 from estimator.settings import Settings
+from estimator.solver.linearize import Derivatives
 from estimator.solver.window import WindowResult, solve_window
 
 MIN_KEYS = 8  # a window solves once it has this many keys (the marginal prior needs 3 + 3)
@@ -81,6 +82,7 @@ class FixedLag:
         self.prior: MarginalPrior | None = None
         self.published = 0  # the next knot (global) whose newest estimate is due
         self.recent_cost: deque[float] = deque(maxlen=50)  # cost per knot of recent solves
+        self.derivatives = Derivatives(self.h)  # MuJoCo's, reused where a knot barely moved
 
     def t_ns(self, first: int, stop: int) -> np.ndarray:
         """Global knot times of keys first … stop − 1."""
@@ -102,13 +104,21 @@ class FixedLag:
         diverged = ""
         try:
             result = solve_window(
-                problem, qpos, bias, covariance=False, prior=self.prior, marginalize=marginalize
+                problem,
+                qpos,
+                bias,
+                covariance=False,
+                prior=self.prior,
+                marginalize=marginalize,
+                derivatives=self.derivatives,
+                first=self.first,
             )
             diverged = self._diverged(result, W)
         except (np.linalg.LinAlgError, FloatingPointError, ValueError) as err:
             diverged, result = f"the solve failed ({err})", None
         if diverged:  # start over from the measurements alone, without the prior
             self.prior = None
+            self.derivatives.clear()
             qpos, bias = self._start(measurements, t_ns, problem.nb, reset=True)
             result = solve_window(problem, qpos, bias, covariance=False, marginalize=marginalize)
         assert result is not None
@@ -119,10 +129,7 @@ class FixedLag:
         smoothed = range(1, cut + 1) if cut else range(0)
         newest = range(max(self.published - self.first, 1), W - 1)
         publish = sorted({*newest, *smoothed})
-        warnings: list[str] = []
-        std = np.full((W, self.model.nv), np.nan)
-        if result.system is not None and publish:
-            std = result.system.marginal_std(self.model.nv, warnings, range(publish[0], W))
+        std = self._std(result, W, newest, smoothed)
         estimate = collect_estimate(
             problem, result.qpos, result.bias, std, self.config, publish, residuals=False
         )
@@ -131,6 +138,7 @@ class FixedLag:
         self.qpos, self.bias = result.qpos[cut:].copy(), result.bias[cut:].copy()
         self.first += cut
         self.prior = result.next_prior if cut else self.prior
+        self.derivatives.forget_before(self.first)
         return step
 
     def finish(self, measurements: Mapping[str, Measurement]) -> LagStep | None:
@@ -156,6 +164,22 @@ class FixedLag:
         )
         newest = range(max(self.published - self.first, 1), W - 1)
         return LagStep(estimate, newest, smoothed, self.first, result)
+
+    def _std(self, result: WindowResult, W: int, newest: range, smoothed: range) -> np.ndarray:
+        """(W, nv) marginal σ at the knots to publish (NaN at the others): the newest from
+        the last key down, the smoothed from the first key up (the system reversed), so
+        that neither costs the whole window."""
+        nv = self.model.nv
+        std = np.full((W, nv), np.nan)
+        if result.system is None:
+            return std
+        warnings: list[str] = []
+        if len(newest):
+            std[newest] = result.system.marginal_std(nv, warnings, range(newest.start, W))[newest]
+        if len(smoothed):
+            back = result.system.reversed().marginal_std(nv, warnings, range(W - smoothed.stop, W))
+            std[smoothed] = back[::-1][smoothed]
+        return std
 
     def reset(self) -> None:
         """Drop the window's solution and prior: the next advance starts from the

@@ -28,12 +28,58 @@ from physics.knots import KnotBatch, KnotEngine
 THREADS = int(os.environ.get("PHYSFUSE_THREADS") or 2)
 
 
-class Linearizer:
-    """Residuals and their Jacobians over all knots of a problem, vectorized across knots."""
+class Derivatives:
+    """MuJoCo's derivatives at the knots of a stream, kept per knot and reused while the
+    knot's (q, v, a) stays within `tol_q` (m or rad) of where they were taken (v within
+    tol_q/h, a within tol_q/h²): a fixed-lag window re-solves mostly knots that barely
+    move, and `mjd_inverseFD` is the linearization's cost (iSAM2 relinearizes only the
+    variables that moved past a threshold, for the same reason). The residuals are always
+    evaluated at the current state."""
 
-    def __init__(self, problem: Problem, prior: MarginalPrior | None = None) -> None:
+    def __init__(self, h: float, tol_q: float = 1e-4) -> None:
+        self.tol = np.array([tol_q, tol_q / h, tol_q / h**2])
+        self.at: dict[int, tuple[np.ndarray, ...]] = {}  # knot → (q, v, a, F, S)
+        self.reused = self.computed = 0
+
+    def get(self, knot: int, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> tuple | None:
+        """(F, S) taken near this state, or None."""
+        kept = self.at.get(knot)
+        if kept is None:
+            return None
+        for x, x0, tol in zip((q, v, a), kept[:3], self.tol, strict=True):
+            if not np.max(np.abs(x - x0)) <= tol:  # (NaN: not near)
+                return None
+        self.reused += 1
+        return kept[3], kept[4]
+
+    def put(self, knot: int, q: np.ndarray, v: np.ndarray, a: np.ndarray, F, S) -> None:
+        self.computed += 1
+        self.at[knot] = (q.copy(), v.copy(), a.copy(), F.copy(), S.copy())
+
+    def clear(self) -> None:
+        self.at.clear()
+
+    def forget_before(self, knot: int) -> None:
+        for k in [k for k in self.at if k < knot]:
+            del self.at[k]
+
+
+class Linearizer:
+    """Residuals and their Jacobians over all knots of a problem, vectorized across knots.
+
+    derivatives, first: MuJoCo's derivatives kept across solves (a stream's window, whose
+    knot k is the stream's knot first + k)."""
+
+    def __init__(
+        self,
+        problem: Problem,
+        prior: MarginalPrior | None = None,
+        derivatives: Derivatives | None = None,
+        first: int = 0,
+    ) -> None:
         self.problem = problem
         self.prior = prior  # on the first keys, from the knots before the window
+        self.derivatives, self.first = derivatives, first
         # the engine at the knots, one MjData per thread (`physics.knots`)
         self.engines = KnotBatch(
             problem.model, THREADS, problem.settings.path, problem.settings.fd_eps
@@ -97,13 +143,21 @@ class Linearizer:
                 x1[:, rot] = D[0][:, rot] + times(d2[:-1], P) + times(d1[1:], Q)
                 x2[:, rot] = times(d2[1:], Q)
 
+        keep = self.derivatives
+
         def work(engine: KnotEngine, chunk: range) -> None:
             for k in chunk:
                 i = k - 1
                 u[i], s[i] = engine.inverse(qpos[k], v[k], a[k])
                 known[i], known_dq, known_dv = p.u_known(engine.data, k, with_jacobians)
                 if with_jacobians:
-                    engine.derivatives(qpos[k], v[k], a[k], *F[:, i], *S[:, i])
+                    kept = keep.get(self.first + k, qpos[k], v[k], a[k]) if keep else None
+                    if kept is not None:
+                        F[:, i], S[:, i] = kept
+                    else:
+                        engine.derivatives(qpos[k], v[k], a[k], *F[:, i], *S[:, i])
+                        if keep is not None:
+                            keep.put(self.first + k, qpos[k], v[k], a[k], F[:, i], S[:, i])
                     if known_dq is not None and known_dv is not None:  # of u − u_known
                         F[0, i] -= known_dq.T
                         F[1, i] -= known_dv.T

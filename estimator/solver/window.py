@@ -23,7 +23,7 @@ from estimator.solver.banded import (
     BandedSystem,
 )
 from estimator.solver.covariance import honest, with_covariance
-from estimator.solver.linearize import Linearizer
+from estimator.solver.linearize import Derivatives, Linearizer
 
 
 @dataclass(frozen=True)
@@ -57,6 +57,8 @@ def solve_window(
     covariance: bool | range = True,
     prior: MarginalPrior | None = None,
     marginalize: int | range | None = None,
+    derivatives: Derivatives | None = None,
+    first: int = 0,
 ) -> WindowResult:
     """Levenberg–Marquardt on one window from (qpos (T, nq), bias (T, nb)); the marginal
     covariances at the knots `covariance` (True: all; False: none).
@@ -64,8 +66,10 @@ def solve_window(
     prior: what the knots before the window say about its first keys (`MarginalPrior`).
     marginalize: the key where the next window starts: its prior (`WindowResult.next_prior`)
     is this window's past up to there, marginalized at the last linearization; a range: the
-    quietest of those keys (`quietest_join`)."""
-    lin = Linearizer(problem, prior)
+    quietest of those keys (`quietest_join`).
+    derivatives, first: MuJoCo's derivatives kept across solves (a stream's window, which
+    starts at the stream's knot `first`; `linearize.Derivatives`)."""
+    lin = Linearizer(problem, prior, derivatives, first)
     try:
         p = problem
         cost, by_type = lin.cost(qpos, bias)
