@@ -49,12 +49,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--source",
         required=True,
         help="- (an MCAP byte stream on stdin), tcp://HOST:PORT (a replay or a robot's MCAP "
-        "stream; reconnected when it breaks off) or an MCAP file still being written",
+        "stream; reconnected when it breaks off), ws://HOST:PORT (a robot's foxglove_bridge) "
+        "or an MCAP file still being written",
     )
     parser.add_argument(
         "--lag", type=float, default=0.5, metavar="S", help="fixed lag, s (default 0.5)"
     )
     parser.add_argument("--out", type=Path, help="MCAP file of the estimate (newest and smoothed)")
+    parser.add_argument(
+        "--foxglove",
+        type=int,
+        metavar="PORT",
+        help="serve the estimate live on a Foxglove WebSocket server on PORT (0: any free one)",
+    )
     parser.add_argument(
         "--iterations",
         type=int,
@@ -95,16 +102,24 @@ def run(args: argparse.Namespace) -> int:
     stream = Stream(config, settings, lag_s=args.lag, stale_s=args.stale)
     model = config.load_model()
     imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
-    writer = None
+    run_id = str(uuid.uuid4())
+    sinks = []
     if args.out is not None:
-        writer = EstimateWriter(
-            args.out, model, config.model, stream.h, str(uuid.uuid4()), chunked=False
-        )
+        sinks.append(EstimateWriter(args.out, model, config.model, stream.h, run_id, chunked=False))
+    if args.foxglove is not None:
+        from estimator.io.foxglove import FoxgloveSink  # (foxglove-sdk only when asked for)
+
+        live = FoxgloveSink(args.foxglove)
+        sinks.append(EstimateWriter(live, model, config.model, stream.h, run_id))
+        print(f"physfuse stream: serving the estimate on ws://0.0.0.0:{live.port}", file=sys.stderr)
     status = Status(args.quiet)
     stop = threading.Event()
     inbox: queue.Queue[Any] = queue.Queue()
+    topics = [s.topic for s in config.streams.values()]
     reader = threading.Thread(
-        target=_read, args=(args.source, stop, args.reconnect, inbox, stream, status), daemon=True
+        target=_read,
+        args=(args.source, topics, stop, args.reconnect, inbox, stream, status),
+        daemon=True,
     )
     previous = signal.signal(signal.SIGTERM, _interrupt)
     interrupted = False
@@ -117,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
                 status.queued.append(inbox.qsize())
                 for update in stream.update():
                     status.add(update, stream)
-                    _write(writer, update, imu_sites)
+                    _write(sinks, update, imu_sites)
                 status.show(stream)
             except KeyboardInterrupt:
                 interrupted = True
@@ -128,10 +143,10 @@ def run(args: argparse.Namespace) -> int:
         try:
             for update in stream.close():
                 status.add(update, stream)
-                _write(writer, update, imu_sites)
+                _write(sinks, update, imu_sites)
         finally:
-            if writer is not None:
-                writer.close()
+            for sink in sinks:
+                sink.close()
     status.show(stream, final=True)
     if args.stats is not None:
         args.stats.write_text(json.dumps(status.report(stream), indent=2) + "\n")
@@ -147,6 +162,7 @@ def _interrupt(signum: int, frame: object) -> None:
 
 def _read(
     source: str,
+    topics: list[str],
     stop: threading.Event,
     reconnect_s: float,
     inbox: queue.Queue,
@@ -156,7 +172,7 @@ def _read(
     """The reader thread: each message's samples onto `inbox` as it arrives (decoded here,
     while the solver's MuJoCo passes run without the GIL), then None."""
     try:
-        for raw, arrival in messages(source, stop, reconnect_s, log=status.log):
+        for raw, arrival in messages(source, stop, reconnect_s, log=status.log, topics=topics):
             inbox.put((stream.decode(raw), arrival))
     except (LogError, OSError) as err:
         status.error = str(err)
@@ -183,12 +199,11 @@ def _drain(inbox: queue.Queue, stream: Stream, status: Status) -> bool:
             return False
 
 
-def _write(writer: EstimateWriter | None, update: Update, imu_sites: dict[str, str]) -> None:
-    if writer is None:
-        return
-    writer.write(update.estimate, update.newest, imu_sites)
-    writer.write(update.estimate, update.smoothed, imu_sites, prefix=SMOOTHED_PREFIX)
-    writer.flush()
+def _write(sinks: list[EstimateWriter], update: Update, imu_sites: dict[str, str]) -> None:
+    for sink in sinks:
+        sink.write(update.estimate, update.newest, imu_sites)
+        sink.write(update.estimate, update.smoothed, imu_sites, prefix=SMOOTHED_PREFIX)
+        sink.flush()
 
 
 class Status:

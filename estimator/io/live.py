@@ -21,7 +21,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator
 from pathlib import Path
 from typing import IO, cast
 from urllib.parse import urlsplit
@@ -43,7 +43,7 @@ def parse_address(spec: str, what: str) -> tuple[str, int]:
     except ValueError:
         port = None
     if url.scheme != "tcp" or port is None:
-        raise LogError(f"{what} {spec!r}: expected tcp://HOST:PORT, '-' or a file")
+        raise LogError(f"{what} {spec!r}: expected tcp://HOST:PORT, ws://HOST:PORT, '-' or a file")
     return url.hostname or "127.0.0.1", port
 
 
@@ -51,6 +51,8 @@ def check_source(spec: str) -> None:
     """A source spec that cannot be one: LogError naming it (before anything starts)."""
     if spec == "-":
         return
+    if spec.startswith(("ws://", "wss://")):
+        return  # (a Foxglove WebSocket server: checked when it connects)
     if "://" in spec:
         parse_address(spec, "--source")
     elif not Path(spec).exists():
@@ -63,11 +65,18 @@ def messages(
     reconnect_s: float = 10.0,
     follow_s: float = 2.0,
     log: Callable[[str], None] = lambda line: print(line, file=sys.stderr),
+    topics: Collection[str] = (),
 ) -> Iterator[tuple[RawMessage, float]]:
     """(message, arrival time on `time.perf_counter`) from a live source: "-" (stdin),
-    "tcp://HOST:PORT" (a replay server, a robot's MCAP stream), or a file being written
-    (followed until it has not grown for `follow_s`). `log` gets one line per connection
-    event and per problem with the bytes."""
+    "tcp://HOST:PORT" (a replay server, a robot's MCAP stream), "ws://HOST:PORT" (a
+    `foxglove_bridge`: its channels on `topics`), or a file being written (followed until it
+    has not grown for `follow_s`). `log` gets one line per connection event and per problem
+    with the bytes."""
+    if spec.startswith(("ws://", "wss://")):
+        from estimator.io.foxglove import bridge_messages  # (it builds on this module)
+
+        yield from bridge_messages(spec, topics, stop, reconnect_s, log)
+        return
     if spec == "-":
         yield from _read(open_stream(sys.stdin.buffer, "<stdin>"), stop)
         return

@@ -40,10 +40,11 @@ ground truth (prefix `/ground_truth`) and the estimator for its estimates (prefi
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any, NamedTuple, cast
+from typing import IO, TYPE_CHECKING, Any, NamedTuple, Protocol, cast
 
 import mujoco
 import numpy as np
@@ -86,6 +87,27 @@ def qos_profile(reliability: str) -> str:
 
 SENSOR_QOS = qos_profile("best_effort")
 RELIABLE_QOS = qos_profile("reliable")
+
+
+class MessageSink(Protocol):
+    """Where state messages go: an MCAP file (`Ros2Writer`) or a live server
+    (`estimator.io.foxglove.FoxgloveSink`)."""
+
+    def write(
+        self,
+        topic: str,
+        msg_type: str,
+        fields: Mapping[str, Any],
+        log_time_ns: int,
+        *,
+        qos: str = ...,
+    ) -> None: ...
+
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None: ...
+
+    def flush(self) -> None: ...
+
+    def finish(self) -> None: ...
 
 
 class Positioned:
@@ -218,12 +240,19 @@ class Ros2Writer:
     def _schema(self, msg_type: str) -> tuple[Schema, EncoderFunction]:
         entry = self._schemas.get(msg_type)
         if entry is None:
-            text = ros2_types.message_definition(msg_type)
+            text, encode = cdr_encoder(msg_type)
             data = text.encode()
             schema_id = self._writer.register_schema(msg_type, SchemaEncoding.ROS2, data)
             schema = Schema(id=schema_id, name=msg_type, encoding=SchemaEncoding.ROS2, data=data)
-            entry = self._schemas[msg_type] = (schema, serialize_dynamic(msg_type, text)[msg_type])
+            entry = self._schemas[msg_type] = (schema, encode)
         return entry
+
+
+@functools.cache
+def cdr_encoder(msg_type: str) -> tuple[str, EncoderFunction]:
+    """A ROS 2 message type's definition text (ros2msg) and its CDR encoder of field dicts."""
+    text = ros2_types.message_definition(msg_type)
+    return text, serialize_dynamic(msg_type, text)[msg_type]
 
 
 # -- message builders (numpy conventions in, ROS conventions out) ------------------------------
@@ -491,7 +520,7 @@ def imu_bias_message(prefix: str, imu: str, t_ns: int, frame_id: str, bias: np.n
 
 
 def write_state(
-    writer: Ros2Writer,
+    writer: MessageSink,
     prefix: str,
     t_ns: int,
     model: mujoco.MjModel,
@@ -555,20 +584,25 @@ class EstimateWriter:
 
     def __init__(
         self,
-        output: str | Path | IO[bytes],
+        output: str | Path | IO[bytes] | MessageSink,
         model: mujoco.MjModel,
         model_name: str,
         h: float,
         run_id: str = "",
         chunked: bool = True,
     ) -> None:
+        """output: an MCAP file (a path or a binary file object) or a live `MessageSink`."""
         self.model = model
         self.layout = StateLayout.of(model)
         self.data = mujoco.MjData(model)
         self.free = [
             j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE
         ]
-        self.writer = Ros2Writer(output, chunked=chunked)
+        self.writer: MessageSink
+        if isinstance(output, str | Path) or not hasattr(output, "add_metadata"):
+            self.writer = Ros2Writer(output, chunked=chunked)
+        else:  # a live sink
+            self.writer = cast(MessageSink, output)
         self.writer.add_metadata(
             "physfuse.estimate", {"model": model_name, "h": repr(h), "run_id": run_id}
         )

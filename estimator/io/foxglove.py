@@ -1,0 +1,167 @@
+"""Foxglove WebSocket in and out: a robot's `foxglove_bridge` as a live source, and the live
+estimate served to the Foxglove app.
+
+    for raw, arrival in bridge_messages("ws://robot:8765", topics, stop):   # a source
+        stream.push(raw, arrival)
+
+    sink = FoxgloveSink(port=8765)            # serves ws://0.0.0.0:8765 (foxglove-sdk)
+    EstimateWriter(None, model, name, h, sink=sink).write(estimate, knots)
+
+The source speaks the Foxglove WebSocket protocol as a client (subprotocol
+`foxglove.websocket.v1`, which `foxglove_bridge` serves, or `foxglove.sdk.v1`, foxglove-sdk's):
+it subscribes to the advertised channels whose topics the config maps, and turns each Message
+Data frame (opcode 1: subscription id u32, receive time u64 ns, payload) into a `RawMessage`
+with the channel's schema, as the MCAP reader gives it. A connection that drops is reconnected
+with backoff; the source ends after `reconnect_s` without one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import struct
+import threading
+import time
+from collections.abc import Callable, Collection, Iterator, Mapping
+from typing import Any
+
+import foxglove
+from mcap.records import Schema
+from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
+from websockets.sync.client import ClientConnection, connect
+
+from estimator.errors import LogError
+from estimator.io.live import BACKOFF_S
+from estimator.io.logs.source import RawMessage
+from estimator.io.mcap_writer import RELIABLE_QOS, cdr_encoder
+
+SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
+MESSAGE_DATA = 1  # server binary opcode
+_HEAD = struct.Struct("<BIQ")  # opcode, subscription id, receive timestamp (ns)
+
+
+def bridge_messages(
+    url: str,
+    topics: Collection[str],
+    stop: threading.Event,
+    reconnect_s: float = 10.0,
+    log: Callable[[str], None] = print,
+) -> Iterator[tuple[RawMessage, float]]:
+    """(message, arrival on `time.perf_counter`) from a Foxglove WebSocket server, for the
+    channels on `topics`; reconnects with backoff until `reconnect_s` without a connection."""
+    wait, since, connected = BACKOFF_S[0], time.monotonic(), False
+    while not stop.is_set():
+        try:
+            ws = connect(url, subprotocols=SUBPROTOCOLS, open_timeout=2.0)  # type: ignore[arg-type]
+        except InvalidURI as err:
+            raise LogError(f"--source {url!r}: {err}") from None
+        except (OSError, InvalidHandshake, TimeoutError) as err:
+            if time.monotonic() - since > reconnect_s:
+                line = f"source {url}: no connection for {reconnect_s:g} s ({err})"
+                if not connected:
+                    raise LogError(line) from None
+                log(f"{line}; giving up")
+                return
+            time.sleep(wait)
+            wait = min(2 * wait, BACKOFF_S[1])
+            continue
+        log(f"source {url}: connected ({ws.subprotocol})")
+        connected, wait = True, BACKOFF_S[0]
+        with ws, contextlib.suppress(ConnectionClosed):
+            yield from _session(ws, url, topics, stop, log)
+        if stop.is_set():
+            return
+        log(f"source {url}: disconnected; reconnecting")
+        since = time.monotonic()
+
+
+def _session(
+    ws: ClientConnection,
+    url: str,
+    topics: Collection[str],
+    stop: threading.Event,
+    log: Callable[[str], None],
+) -> Iterator[tuple[RawMessage, float]]:
+    """One connection: subscribe to what is advertised on `topics`, yield its messages."""
+    channels: dict[int, tuple[str, str, Schema, str]] = {}  # subscription → channel
+    next_id = 1
+    while not stop.is_set():
+        try:
+            frame = ws.recv(timeout=0.5)
+        except TimeoutError:
+            continue
+        arrival = time.perf_counter()
+        if isinstance(frame, str):
+            try:
+                op = json.loads(frame)
+            except json.JSONDecodeError:
+                log(f"source {url}: a text frame that is not JSON (skipped)")
+                continue
+            if op.get("op") == "advertise":
+                subscribe = []
+                for ch in op.get("channels", []):
+                    if ch.get("topic") not in topics or ch.get("encoding") != "cdr":
+                        continue
+                    schema = Schema(
+                        id=int(ch["id"]),
+                        name=str(ch.get("schemaName", "")),
+                        encoding=str(ch.get("schemaEncoding") or "ros2msg"),
+                        data=str(ch.get("schema", "")).encode(),
+                    )
+                    channels[next_id] = (ch["topic"], schema.name, schema, "cdr")
+                    subscribe.append({"id": next_id, "channelId": int(ch["id"])})
+                    next_id += 1
+                if subscribe:
+                    ws.send(json.dumps({"op": "subscribe", "subscriptions": subscribe}))
+            continue
+        if len(frame) < _HEAD.size or frame[0] != MESSAGE_DATA:
+            continue  # (time, service responses, ...)
+        _, sub, t_ns = _HEAD.unpack_from(frame)
+        channel = channels.get(sub)
+        if channel is None:
+            continue
+        topic, msg_type, schema, encoding = channel
+        yield (
+            RawMessage(topic, msg_type, schema, encoding, t_ns, bytes(frame[_HEAD.size :])),
+            (arrival),
+        )
+
+
+class FoxgloveSink:
+    """The estimate served live on a Foxglove WebSocket server (foxglove-sdk): the same topics
+    and ROS 2 messages (CDR, ros2msg schemas) as the MCAP file, for the Foxglove app or any
+    client of the protocol. port 0: any free one (`port`)."""
+
+    def __init__(self, port: int, host: str = "0.0.0.0") -> None:  # (all interfaces: a LAN)
+        self.server = foxglove.start_server(name="physfuse", host=host, port=port)
+        self.port = self.server.port
+        self.channels: dict[str, foxglove.Channel] = {}
+
+    def write(
+        self,
+        topic: str,
+        msg_type: str,
+        fields: Mapping[str, Any],
+        log_time_ns: int,
+        *,
+        qos: str = RELIABLE_QOS,
+    ) -> None:
+        text, encode = cdr_encoder(msg_type)
+        channel = self.channels.get(topic)
+        if channel is None:
+            schema = foxglove.Schema(name=msg_type, encoding="ros2msg", data=text.encode())
+            channel = self.channels[topic] = foxglove.Channel(
+                topic, message_encoding="cdr", schema=schema
+            )
+        channel.log(encode(fields), log_time=int(log_time_ns))
+
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """(The protocol has no metadata records; the MCAP file keeps them.)"""
+
+    def flush(self) -> None:
+        """(Messages leave as they are logged.)"""
+
+    def finish(self) -> None:
+        for channel in self.channels.values():
+            channel.close()
+        self.server.stop()

@@ -1,0 +1,168 @@
+"""The streaming node on Foxglove WebSocket, loopback only: a recording served by a real
+foxglove-sdk server as a robot's foxglove_bridge would serve it, and the node's own live
+estimate read back by a WebSocket client speaking the protocol."""
+
+from __future__ import annotations
+
+import json
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import foxglove
+import numpy as np
+from mcap.records import Schema
+from mcap_ros2.decoder import DecoderFactory
+from websockets.sync.client import connect
+
+from estimator.config import load_config
+from estimator.io.logs.source import open_log
+from estimator.io.state_topics import read_state_topics
+
+ROOT = Path(__file__).resolve().parent.parent
+NAME = "single_joint"
+LOG = ROOT / "recordings" / f"{NAME}.mcap"
+CONFIG = ROOT / "configs" / f"{NAME}.toml"
+PHYSFUSE = [sys.executable, "-m", "estimator.cli"]
+
+
+class _Bridge(foxglove.ServerListener):
+    """A foxglove-sdk server advertising the recording's topics (CDR, ros2msg schemas); once
+    a client has subscribed to all of them it sends the messages at `rate` × their pace, then
+    stops (the robot went away)."""
+
+    def __init__(self, topics: list[str], rate: float) -> None:
+        self.messages = list(open_log(LOG, topics=topics))
+        self.topics, self.rate = set(topics), rate
+        self.subscribed: set[str] = set()
+        self.all_subscribed = threading.Event()
+        self.server = foxglove.start_server(host="127.0.0.1", port=0, server_listener=self)
+        self.channels = {}
+        for raw in self.messages:
+            if raw.topic not in self.channels:
+                schema = foxglove.Schema(
+                    name=raw.schema.name, encoding=raw.schema.encoding, data=raw.schema.data
+                )
+                self.channels[raw.topic] = foxglove.Channel(
+                    raw.topic, message_encoding="cdr", schema=schema
+                )
+        self.thread = threading.Thread(target=self._send, daemon=True)
+        self.thread.start()
+
+    def on_subscribe(self, client, channel) -> None:
+        self.subscribed.add(channel.topic)
+        if self.subscribed >= self.topics:
+            self.all_subscribed.set()
+
+    def _send(self) -> None:
+        if not self.all_subscribed.wait(timeout=60):
+            return
+        start, t0 = time.perf_counter(), self.messages[0].log_time_ns
+        for raw in self.messages:
+            delay = start + (raw.log_time_ns - t0) / 1e9 / self.rate - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            self.channels[raw.topic].log(raw.data, log_time=raw.log_time_ns)
+        time.sleep(0.5)
+        self.server.stop()
+
+
+def test_a_foxglove_bridge_is_a_live_source(tmp_path):
+    topics = [s.topic for s in load_config(CONFIG).streams.values()]
+    bridge = _Bridge(topics, rate=2.0)
+    out, stats = tmp_path / "live.mcap", tmp_path / "stats.json"
+    node = subprocess.run(
+        [
+            *PHYSFUSE,
+            "stream",
+            "--config",
+            str(CONFIG),
+            "--source",
+            f"ws://127.0.0.1:{bridge.server.port}",
+            "--out",
+            str(out),
+            "--stats",
+            str(stats),
+            "--reconnect",
+            "1",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert node.returncode == 0, node.stderr
+    assert "connected (foxglove.sdk.v1)" in node.stderr
+    report = json.loads(stats.read_text())
+    assert report["messages"] == len(bridge.messages)  # every message, none lost
+    model = load_config(CONFIG).load_model()
+    t, q = read_state_topics(out, "/estimate_smoothed").qpos(model)
+    span = (bridge.messages[-1].log_time_ns - bridge.messages[0].log_time_ns) / 1e9
+    assert (t[-1] - t[0]) / 1e9 > span - 0.1 and np.all(np.isfinite(q))
+
+
+def test_the_live_estimate_is_served_on_foxglove_websocket(tmp_path):
+    replay = subprocess.Popen(
+        [*PHYSFUSE, "replay", str(LOG), "--to", "tcp://127.0.0.1:0", "--rate", "1"],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert replay.stderr is not None
+    port = int(replay.stderr.readline().rsplit(" ", 1)[1])
+    node = subprocess.Popen(
+        [
+            *PHYSFUSE,
+            "stream",
+            "--config",
+            str(CONFIG),
+            "--source",
+            f"tcp://127.0.0.1:{port}",
+            "--foxglove",
+            "0",
+            "--quiet",
+        ],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert node.stderr is not None
+    line = node.stderr.readline()  # "physfuse stream: serving the estimate on ws://0.0.0.0:N"
+    live = int(line.rsplit(":", 1)[1])
+    received = []
+    try:
+        with connect(f"ws://127.0.0.1:{live}", subprotocols=["foxglove.sdk.v1"]) as ws:
+            schema = None
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and len(received) < 5:
+                frame = ws.recv(timeout=60)
+                if isinstance(frame, str):
+                    op = json.loads(frame)
+                    for ch in op.get("channels", []) if op["op"] == "advertise" else []:
+                        if ch["topic"] == "/estimate_smoothed/joint_states":
+                            schema = Schema(
+                                id=ch["id"],
+                                name=ch["schemaName"],
+                                encoding=ch["schemaEncoding"],
+                                data=ch["schema"].encode(),
+                            )
+                            sub = {"id": 1, "channelId": ch["id"]}
+                            ws.send(json.dumps({"op": "subscribe", "subscriptions": [sub]}))
+                elif frame[0] == 1 and struct.unpack_from("<I", frame, 1)[0] == 1:
+                    received.append(frame[13:])
+    finally:
+        node.terminate()
+        node.wait(timeout=60)
+        replay.kill()
+        replay.wait(timeout=30)
+    assert schema is not None and len(received) == 5
+    decode = DecoderFactory().decoder_for("cdr", schema)
+    assert decode is not None
+    msg = decode(received[0])
+    model = load_config(CONFIG).load_model()
+    assert list(msg.name) == [model.joint(j).name for j in range(model.njnt)]
+    assert np.all(np.isfinite(msg.position))
