@@ -4,10 +4,11 @@
     physfuse stream --config configs/humanoid_push.toml --source tcp://127.0.0.1:9000 \\
         --out out/live.mcap
 
-A reader thread takes messages off the source and decodes them as they arrive (while the
-solver's MuJoCo passes run without the GIL); the main thread buffers the samples in the
-`Stream` and solves whatever knots are ready whenever it is free, so that a slow solve takes
-more knots next time instead of falling behind message by message. Every
+A reader process takes messages off the source and decodes them as they arrive
+(`DecodingReader`: the decoding's Python does not take the GIL from the solver); the main
+process buffers the samples in the `Stream` and solves whatever knots are ready whenever it
+is free, so that a slow solve takes more knots next time instead of falling behind message
+by message. Every
 update writes the newest knots under `/estimate/...` and the knots that left the lag under
 `/estimate_smoothed/...`, and flushes: the file reads back up to the last update even if
 the process is killed. SIGINT and SIGTERM end the run with the window smoothed and the
@@ -33,7 +34,8 @@ import numpy as np
 
 from estimator.config import load_config
 from estimator.errors import ConfigError, LogError
-from estimator.io.live import check_source, messages
+from estimator.io.live import DecodingReader, check_source
+from estimator.io.logs.measurements import BadSampleCounts
 from estimator.io.mcap_writer import EstimateWriter
 from estimator.model_checks import check_for_estimate
 from estimator.settings import Settings
@@ -113,23 +115,15 @@ def run(args: argparse.Namespace) -> int:
         sinks.append(EstimateWriter(live, model, config.model, stream.h, run_id))
         print(f"physfuse stream: serving the estimate on ws://0.0.0.0:{live.port}", file=sys.stderr)
     status = Status(args.quiet)
-    stop = threading.Event()
-    inbox: queue.Queue[Any] = queue.Queue()
-    topics = [s.topic for s in config.streams.values()]
-    reader = threading.Thread(
-        target=_read,
-        args=(args.source, topics, stop, args.reconnect, inbox, stream, status),
-        daemon=True,
-    )
+    reader = DecodingReader(args.config, args.source, args.reconnect)
     previous = signal.signal(signal.SIGTERM, _interrupt)
     interrupted = False
     try:
-        reader.start()
         done = False
         while not done:
             try:
-                done = _drain(inbox, stream, status)
-                status.queued.append(inbox.qsize())
+                done = _drain(reader.queue, stream, status)
+                status.queued.append(reader.queue.qsize())
                 for update in stream.update():
                     status.add(update, stream)
                     _write(sinks, update, imu_sites)
@@ -138,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
                 interrupted = True
                 break
     finally:
-        stop.set()
+        reader.close()
         signal.signal(signal.SIGTERM, previous)
         try:
             for update in stream.close():
@@ -160,39 +154,26 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def _read(
-    source: str,
-    topics: list[str],
-    stop: threading.Event,
-    reconnect_s: float,
-    inbox: queue.Queue,
-    stream: Stream,
-    status: Status,
-) -> None:
-    """The reader thread: each message's samples onto `inbox` as it arrives (decoded here,
-    while the solver's MuJoCo passes run without the GIL), then None."""
-    try:
-        for raw, arrival in messages(source, stop, reconnect_s, log=status.log, topics=topics):
-            inbox.put((stream.decode(raw), arrival))
-    except (LogError, OSError) as err:
-        status.error = str(err)
-    finally:
-        inbox.put(None)
-
-
-def _drain(inbox: queue.Queue, stream: Stream, status: Status) -> bool:
-    """Push every message waiting (waiting up to 50 ms for the first); True at the end."""
+def _drain(inbox: Any, stream: Stream, status: Status) -> bool:
+    """Buffer every message waiting (waiting up to 50 ms for the first); True at the end."""
     try:
         item = inbox.get(timeout=0.05)
     except queue.Empty:
         return False
     while True:
-        if item is None:
+        kind = item[0]
+        if kind == "end":
             return True
-        samples, arrival = item
-        for sample in samples:
-            stream.push_sample(sample, arrival)
-        status.received += 1
+        if kind == "samples":
+            for sample in item[1]:
+                stream.push_sample(sample, item[2])
+            status.received += 1
+        elif kind == "counts":
+            status.messages, status.bad = item[1], item[2]
+        elif kind == "log":
+            status.log(item[1])
+        elif kind == "error":
+            status.error = item[1]
         try:
             item = inbox.get_nowait()
         except queue.Empty:
@@ -213,7 +194,9 @@ class Status:
         self.quiet = quiet
         self.start = time.perf_counter()
         self.last_shown = self.start
-        self.received = 0
+        self.received = 0  # messages with samples
+        self.messages = 0  # every message read
+        self.bad: dict[str, BadSampleCounts] = {}  # skipped, per stream (the decoder's)
         self.latency: list[float] = []
         self.backlog: list[int] = []
         self.solve: list[float] = []
@@ -244,10 +227,10 @@ class Status:
         self.last_shown = now
         c = stream.counts
         wall = max(now - self.start, 1e-9)
-        bad = sum(b.total for b in stream.bad_counts.values())
+        bad = sum(b.total for b in self.bad.values())
         p50, p99 = (np.percentile(self.recent, (50, 99)) * 1e3) if self.recent else (np.nan,) * 2
         line = (
-            f"in {self.received / wall:.0f} msg/s, out {c.knots_newest / wall:.0f} knots/s | "
+            f"in {self.messages / wall:.0f} msg/s, out {c.knots_newest / wall:.0f} knots/s | "
             f"latency p50 {p50:.0f} ms p99 {p99:.0f} ms | backlog "
             f"{self.backlog[-1] if self.backlog else 0} knots, "
             f"{self.queued[-1] if self.queued else 0} messages | late {c.late} bad {bad} | "
@@ -259,7 +242,8 @@ class Status:
         lat = np.array(self.latency)
         return {
             "wall_s": time.perf_counter() - self.start,
-            "messages": self.received,
+            "messages": self.messages,
+            "messages_with_samples": self.received,
             "latency_s": self.latency,
             "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
             "latency_p99_s": float(np.percentile(lat, 99)) if len(lat) else None,
@@ -267,6 +251,6 @@ class Status:
             "queued": self.queued,
             "solve_s": self.solve,
             "counts": asdict(stream.counts),
-            "bad": {name: b.as_dict() for name, b in stream.bad_counts.items()},
+            "bad": {name: b.as_dict() for name, b in self.bad.items()},
             "knot_s": stream.h,
         }
