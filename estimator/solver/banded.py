@@ -65,6 +65,7 @@ class BandedSystem:
             ]
         T, nz, span = p.T, p.nz, lin.span
         K = T - 2
+        n_rows = K if until is None else max(0, min(K, until - span + 2))
         # Knot row i (knot k = i + 1) reaches keys i + a, a = 0 … span − 1. Each factor's
         # Jacobian is split by key into runs of consecutive columns, (a, columns in J,
         # columns in z_{i+a}) (slices: fancy indexing is 5× slower). The sensors' blocks, a
@@ -97,7 +98,8 @@ class BandedSystem:
             lower = [np.zeros((T - d, nz, nz)) for d in range(1, span)]
             g = np.zeros((T, nz))
             H = [diag, *lower]  # H[a − b][key of b]: H_{k+a−b, k}
-            i0, i1 = c.start, c.stop
+            i0 = c.start
+            i1 = max(i0, min(c.stop, n_rows))  # (rows past `until` are 0: skipped)
             for r, reach, n_cols, runs in parts:
                 rc = r[i0:i1]
                 if len(reach) == 1:

@@ -197,8 +197,14 @@ class Linearizer:
 
     def cost(self, qpos: np.ndarray, bias: np.ndarray) -> tuple[float, dict[str, float]]:
         """Total robust cost and its split by factor type."""
+        return self.cost_of(self.blocks(self.terms(qpos, False), bias), qpos, bias)
+
+    def cost_of(
+        self, blocks: list[Block], qpos: np.ndarray, bias: np.ndarray
+    ) -> tuple[float, dict[str, float]]:
+        """The same from the blocks at (qpos, bias) (a linearization's: no second pass)."""
         total: dict[str, float] = {}
-        for b in self.blocks(self.terms(qpos, False), bias):
+        for b in blocks:
             total[b.name] = total.get(b.name, 0.0) + float(b.cost.sum())
         total.update(self.bias_cost(bias))
         if self.prior is not None:

@@ -72,7 +72,8 @@ def solve_window(
     lin = Linearizer(problem, prior, derivatives, first)
     try:
         p = problem
-        cost, by_type = lin.cost(qpos, bias)
+        blocks = lin.linearize(qpos, bias)  # (its rows give the start's cost too)
+        cost, by_type = lin.cost_of(blocks, qpos, bias)
         cost0 = cost
         # damping λ on the unit diagonal: from LAMBDA_MIN (Gauss–Newton steps), raised only by
         # rejected steps (on the 1-minute humanoid_push log 120 linearizations against 157
@@ -81,9 +82,9 @@ def solve_window(
         converged = False
         it = 0
         system = None
-        blocks: list[Block] = []
-        for it in range(1, p.settings.max_iterations + 1):  # noqa: B007
-            blocks = lin.linearize(qpos, bias)
+        for it in range(1, p.settings.max_iterations + 1):
+            if it > 1:
+                blocks = lin.linearize(qpos, bias)
             at = (qpos, bias)
             system = BandedSystem.of(blocks, lin, bias, qpos)
             s, ab = system.scaled_band()
