@@ -23,6 +23,7 @@ from estimator.config import load_config
 from estimator.io.live import send
 from estimator.io.logs import read_log
 from estimator.io.logs.source import RawMessage, open_log
+from estimator.io.logs.source import open_stream as open_log_stream
 from estimator.io.state_topics import at_times, read_state_topics, trajectory_errors
 from estimator.settings import Settings
 from estimator.stream import Stream
@@ -271,3 +272,41 @@ def test_derivatives_are_reused_only_near_where_they_were_taken():
     assert kept.get(5, q * np.nan, v, a) is None
     kept.forget_before(6)
     assert kept.get(5, q, v, a) is None and (kept.reused, kept.computed) == (1, 1)
+
+
+def test_the_estimate_is_published_as_a_live_mcap_stream():
+    """--publish tcp://: another program connects and reads the estimate as it is made, with
+    physfuse's own byte-stream reader."""
+    replay, port = _replay(rate=1)
+    node = subprocess.Popen(
+        [
+            *PHYSFUSE,
+            "stream",
+            "--config",
+            str(CONFIG),
+            "--source",
+            f"tcp://127.0.0.1:{port}",
+            "--publish",
+            "tcp://127.0.0.1:0",
+            "--quiet",
+        ],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert node.stderr is not None
+    line = node.stderr.readline()  # "physfuse stream: publishing the estimate on tcp://...:N"
+    assert "publishing the estimate on tcp://127.0.0.1:" in line, line
+    topics = []
+    try:
+        with socket.create_connection(("127.0.0.1", int(line.rsplit(":", 1)[1]))) as sock:
+            for raw in open_log_stream(sock.makefile("rb")):
+                topics.append(raw.topic)
+                if topics.count("/estimate_smoothed/joint_states") == 5:
+                    break
+    finally:
+        node.terminate()
+        node.wait(timeout=60)
+        replay.kill()
+        replay.wait(timeout=30)
+    assert topics.count("/estimate/joint_states") >= 5

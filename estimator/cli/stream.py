@@ -34,7 +34,7 @@ import numpy as np
 
 from estimator.config import load_config
 from estimator.errors import ConfigError, LogError
-from estimator.io.live import DecodingReader, check_source
+from estimator.io.live import DecodingReader, McapStreamServer, check_source
 from estimator.io.logs.measurements import BadSampleCounts
 from estimator.io.mcap_writer import EstimateWriter
 from estimator.model_checks import check_for_estimate
@@ -58,6 +58,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--lag", type=float, default=0.5, metavar="S", help="fixed lag, s (default 0.5)"
     )
     parser.add_argument("--out", type=Path, help="MCAP file of the estimate (newest and smoothed)")
+    parser.add_argument(
+        "--publish",
+        metavar="SINK",
+        help="the estimate as a live MCAP byte stream: - (standard output) or tcp://HOST:PORT "
+        "(served to every client that connects; port 0: any free one)",
+    )
     parser.add_argument(
         "--foxglove",
         type=int,
@@ -108,6 +114,15 @@ def run(args: argparse.Namespace) -> int:
     sinks = []
     if args.out is not None:
         sinks.append(EstimateWriter(args.out, model, config.model, stream.h, run_id, chunked=False))
+    if args.publish == "-":
+        sinks.append(
+            EstimateWriter(sys.stdout.buffer, model, config.model, stream.h, run_id, chunked=False)
+        )
+    elif args.publish is not None:
+        server = McapStreamServer(args.publish)
+        sinks.append(EstimateWriter(server, model, config.model, stream.h, run_id))
+        host = args.publish.rsplit(":", 1)[0]
+        print(f"physfuse stream: publishing the estimate on {host}:{server.port}", file=sys.stderr)
     if args.foxglove is not None:
         from estimator.io.foxglove import FoxgloveSink  # (foxglove-sdk only when asked for)
 

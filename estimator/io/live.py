@@ -16,6 +16,7 @@ as fast as the reader takes them).
 
 from __future__ import annotations
 
+import contextlib
 import io
 import multiprocessing
 import os
@@ -26,14 +27,14 @@ import threading
 import time
 from collections.abc import Callable, Collection, Iterable, Iterator
 from pathlib import Path
-from typing import IO, Any, cast
+from typing import IO, Any, NamedTuple, cast
 from urllib.parse import urlsplit
 
 from mcap.writer import Writer
 
 from estimator.errors import LogError
 from estimator.io.logs.source import RawMessage, open_log, open_stream
-from estimator.io.mcap_writer import Positioned
+from estimator.io.mcap_writer import Positioned, Ros2Writer
 
 BACKOFF_S = (0.1, 2.0)  # first and longest wait between connection attempts
 
@@ -248,6 +249,72 @@ class _Growing(io.RawIOBase):
             if data or self.stop.is_set() or time.monotonic() - last > self.idle_s:
                 return data
             time.sleep(0.01)
+
+
+# -- the estimate as a live MCAP byte stream ---------------------------------------------------
+
+
+class McapStreamServer:
+    """A `MessageSink` serving the estimate as an unchunked MCAP byte stream to every client
+    that connects to "tcp://HOST:PORT" (port 0: any free one, `port`): each client gets its
+    own stream from the moment it connects (header, then each topic's channel on first use);
+    a client that goes away is dropped."""
+
+    def __init__(self, address: str) -> None:
+        host, port = parse_address(address, "--publish")
+        self.server = socket.create_server((host, port))
+        self.port = self.server.getsockname()[1]
+        self.clients: list[_Client] = []
+        self.lock = threading.Lock()
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                conn, _ = self.server.accept()
+            except OSError:  # closed
+                return
+            conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            out = conn.makefile("wb")
+            with self.lock:
+                self.clients.append(_Client(conn, out, Ros2Writer(out, chunked=False)))
+
+    def write(self, topic: str, msg_type: str, fields: Any, log_time_ns: int, **qos: Any) -> None:
+        self._each(lambda c: c.writer.write(topic, msg_type, fields, log_time_ns, **qos))
+
+    def add_metadata(self, name: str, data: Any) -> None:
+        """(A client that connects later would not get it: the file keeps it.)"""
+
+    def flush(self) -> None:
+        self._each(lambda c: c.writer.flush())
+
+    def finish(self) -> None:
+        self.server.close()
+        self._each(lambda c: c.writer.finish())
+        with self.lock:
+            for client in self.clients:
+                client.close()
+            self.clients.clear()
+
+    def _each(self, do: Callable[[_Client], None]) -> None:
+        with self.lock:
+            for client in list(self.clients):
+                try:
+                    do(client)
+                except OSError:  # the client went away
+                    self.clients.remove(client)
+                    client.close()
+
+
+class _Client(NamedTuple):
+    conn: socket.socket
+    out: IO[bytes]
+    writer: Ros2Writer
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self.out.close()
+        self.conn.close()
 
 
 # -- the replay server ------------------------------------------------------------------------
