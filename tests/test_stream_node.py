@@ -310,3 +310,26 @@ def test_the_estimate_is_published_as_a_live_mcap_stream():
         replay.kill()
         replay.wait(timeout=30)
     assert topics.count("/estimate/joint_states") >= 5
+
+
+def test_a_sensor_that_stops_does_not_stop_the_knots():
+    """The arm's mocap stops halfway: once it is --stale behind, the encoders alone ready
+    the knots, and every knot to the end is estimated."""
+    config = load_config(CONFIG)
+    settings = replace(Settings.from_config(config), max_iterations=2, fit_softness="none")
+    stream = Stream(config, settings, lag_s=0.5, stale_s=0.25)
+    messages = list(open_log(LOG, topics=[s.topic for s in config.streams.values()]))
+    t_mid = (messages[0].log_time_ns + messages[-1].log_time_ns) // 2
+    updates = []
+    for i, raw in enumerate(messages):
+        if raw.topic == "/mocap/arm/pose" and raw.log_time_ns > t_mid:
+            continue
+        stream.push(raw)
+        if i % 200 == 0:
+            updates += stream.update()
+    newest_before_close = stream.counts.knots_newest
+    updates += stream.close()
+    knots = round((messages[-1].log_time_ns - messages[0].log_time_ns) / 1e9 / stream.h)
+    # the newest estimate kept up with the encoders, not stuck where the mocap stopped
+    assert newest_before_close > 0.9 * knots
+    assert stream.counts.knots_smoothed >= knots - 5  # (the two ends, stamps vs log times)
