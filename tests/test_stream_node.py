@@ -333,3 +333,22 @@ def test_a_sensor_that_stops_does_not_stop_the_knots():
     # the newest estimate kept up with the encoders, not stuck where the mocap stopped
     assert newest_before_close > 0.9 * knots
     assert stream.counts.knots_smoothed >= knots - 5  # (the two ends, stamps vs log times)
+
+
+def test_the_live_rerun_recording_reads_back(tmp_path):
+    """--rerun FILE.rrd: the recording read back with Rerun's own reader has every body's
+    pose at (nearly) every knot, the uncertainty plots, on seconds since the first knot."""
+    from test_visualize import read_recording
+
+    replay, port = _replay(rate=0)
+    rrd = tmp_path / "live.rrd"
+    node = _stream(f"tcp://127.0.0.1:{port}", tmp_path / "x.mcap", "--rerun", str(rrd), "--quiet")
+    _, err = node.communicate(timeout=300)
+    replay.wait(timeout=30)
+    assert node.returncode == 0, err
+    entities = read_recording(rrd)
+    arm = [e for path, e in entities.items() if path.startswith("/world/model/")]
+    assert arm, list(entities)
+    times = sorted(set(arm[0].time_ns))
+    assert len(times) >= 1490 and times[0] >= 0 and times[-1] < 3.1e9
+    assert any(path.startswith("/plots/uncertainty/") for path in entities)

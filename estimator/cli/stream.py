@@ -65,6 +65,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(served to every client that connects; port 0: any free one)",
     )
     parser.add_argument(
+        "--rerun",
+        metavar="spawn|serve|FILE.rrd",
+        help="the estimate live in Rerun: a native viewer (spawn), a web viewer on localhost "
+        "(serve), or a recording file that grows with the run",
+    )
+    parser.add_argument(
         "--foxglove",
         type=int,
         metavar="PORT",
@@ -111,6 +117,7 @@ def run(args: argparse.Namespace) -> int:
     model = config.load_model()
     imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
     run_id = str(uuid.uuid4())
+    rerun = _Rerun(args.rerun, model, run_id)  # (a viewer that cannot open: before the rest)
     sinks = []
     if args.out is not None:
         sinks.append(EstimateWriter(args.out, model, config.model, stream.h, run_id, chunked=False))
@@ -142,6 +149,7 @@ def run(args: argparse.Namespace) -> int:
                 for update in stream.update():
                     status.add(update, stream)
                     _write(sinks, update, imu_sites)
+                    rerun.log(update, stream)
                 status.show(stream)
             except KeyboardInterrupt:
                 interrupted = True
@@ -153,9 +161,11 @@ def run(args: argparse.Namespace) -> int:
             for update in stream.close():
                 status.add(update, stream)
                 _write(sinks, update, imu_sites)
+                rerun.log(update, stream)
         finally:
             for sink in sinks:
                 sink.close()
+            rerun.close()
     status.show(stream, final=True)
     if args.stats is not None:
         args.stats.write_text(json.dumps(status.report(stream), indent=2) + "\n")
@@ -200,6 +210,27 @@ def _write(sinks: list[EstimateWriter], update: Update, imu_sites: dict[str, str
         sink.write(update.estimate, update.newest, imu_sites)
         sink.write(update.estimate, update.smoothed, imu_sites, prefix=SMOOTHED_PREFIX)
         sink.flush()
+
+
+class _Rerun:
+    """`--rerun`: the Rerun recording (its time origin the stream's first knot): each
+    update's newest knots, then its smoothed ones over them."""
+
+    def __init__(self, to: str | None, model: Any, run_id: str) -> None:
+        self.live: Any = None
+        if to is not None:
+            from estimator.io.rerun import LiveRecording  # (Rerun only when asked for)
+
+            self.live = LiveRecording(model, to, run_id)
+
+    def log(self, update: Update, stream: Stream) -> None:
+        if self.live is not None and stream.lag is not None:
+            self.live.log(update.estimate, update.newest, stream.lag.t0_ns)
+            self.live.log(update.estimate, update.smoothed, stream.lag.t0_ns)
+
+    def close(self) -> None:
+        if self.live is not None:
+            self.live.close()
 
 
 class Status:

@@ -40,6 +40,7 @@ import time
 import urllib.parse
 import uuid
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import mujoco
@@ -224,6 +225,87 @@ def _show(
         live.disconnect()
 
 
+class LiveRecording:
+    """A streaming run's estimate as a Rerun recording that grows with it: the model's geoms
+    once, then each update's knots (body poses, contacts, contact forces, uncertainty) on
+    the `time` timeline (seconds since the stream's first knot).
+
+    to: a `.rrd` path (written as it goes; complete once `close`d), "spawn" (a native viewer
+    on this machine), or "serve" (a gRPC server and a web viewer on localhost; the URLs are
+    printed).
+
+        live = LiveRecording(model, "out/live.rrd")     # a viewer that cannot open: here
+        live.log(update.estimate, update.newest, t0_ns)  # t0_ns: the first call's is kept
+        live.close()
+    """
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        to: str,
+        recording_id: str | None = None,
+        host: str = "127.0.0.1",
+    ) -> None:
+        self.model = model
+        self.t0_ns: int | None = None
+        self.rec = rr.RecordingStream("physfuse stream", recording_id=recording_id)
+        if to == "spawn":
+            _check_viewer(True, False, host, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT)
+            self.rec.spawn(port=DEFAULT_GRPC_PORT)
+        elif to == "serve":
+            _check_viewer(False, True, host, DEFAULT_GRPC_PORT, DEFAULT_WEB_PORT)
+            server = rr.GrpcServerSink(host, DEFAULT_GRPC_PORT)
+            self.rec.set_sinks(server)
+            rr.serve_web_viewer(web_port=DEFAULT_WEB_PORT, connect_to=server.uri)
+            print(f"Rerun web viewer: {web_viewer_url(server.uri, host)}", file=sys.stderr)
+        else:
+            Path(to).parent.mkdir(parents=True, exist_ok=True)
+            self.rec.set_sinks(rr.FileSink(to))
+        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        _log_geoms(self.rec, model)
+        self.dofs = dof_names(model)
+
+    def log(self, estimate: Estimate, knots: range, t0_ns: int) -> None:
+        """The estimate's knots `knots` (indices into it); t0_ns: the time origin (the
+        stream's first knot; the first call's is kept)."""
+        if not len(knots):
+            return
+        part = _knots_of(estimate, knots)
+        if self.t0_ns is None:  # (the blueprint's tabs follow what the estimate holds)
+            self.t0_ns = t0_ns
+            self.rec.send_recording_start_time_nanos(t0_ns)
+            self.rec.send_blueprint(build_blueprint(part, self.model))
+        offsets = part.t_ns - np.int64(self.t0_ns)
+        _log_body_poses(self.rec, self.model, part.qpos, offsets)
+        _log_contacts(self.rec, self.model, part, offsets)
+        _log_series_group(self.rec, "plots/uncertainty", self.dofs, part.qpos_std, offsets)
+
+    def close(self) -> None:
+        self.rec.flush(timeout_sec=LIVE_FLUSH_TIMEOUT_S)
+        self.rec.disconnect()
+
+
+def _knots_of(estimate: Estimate, knots: range) -> Estimate:
+    """The estimate at some of its knots (no residuals)."""
+    at = slice(knots.start, knots.stop)
+    return replace(
+        estimate,
+        t_ns=estimate.t_ns[at],
+        qpos=estimate.qpos[at],
+        qvel=estimate.qvel[at],
+        qacc=estimate.qacc[at],
+        qfrc_inverse=estimate.qfrc_inverse[at],
+        qfrc_known=estimate.qfrc_known[at],
+        qpos_std=estimate.qpos_std[at],
+        constraints=estimate.constraints[at],
+        imu_bias={name: b[at] for name, b in estimate.imu_bias.items()},
+        model_error={name: e[at] for name, e in estimate.model_error.items()},
+        residuals={},
+        residual_labels={},
+        cost_by_type={},
+    )
+
+
 def _check_display() -> None:
     """A native viewer needs a display; without one Rerun's viewer exits and the SDK waits."""
     if sys.platform.startswith("linux") and not (
@@ -356,7 +438,11 @@ def _log_model(
     rec: rr.RecordingStream, model: mujoco.MjModel, estimate: Estimate, knots: np.ndarray
 ) -> None:
     """Geoms once (static, in their body's frame), body poses per knot (mj_kinematics)."""
-    bodies = sorted({int(model.geom_bodyid[g]) for g in _visible_geoms(model)})
+    _log_geoms(rec, model)
+    _log_body_poses(rec, model, estimate.qpos, knots)
+
+
+def _log_geoms(rec: rr.RecordingStream, model: mujoco.MjModel) -> None:
     for g in _visible_geoms(model):
         entity = f"{_body_path(model, int(model.geom_bodyid[g]))}/{_geom_name(model, g)}"
         shape = _geom_archetype(model, g)
@@ -371,7 +457,13 @@ def _log_model(
             shape,
             static=True,
         )
-    xpos, xquat = _body_poses(model, estimate.qpos)
+
+
+def _log_body_poses(
+    rec: rr.RecordingStream, model: mujoco.MjModel, qpos: np.ndarray, knots: np.ndarray
+) -> None:
+    bodies = sorted({int(model.geom_bodyid[g]) for g in _visible_geoms(model)})
+    xpos, xquat = _body_poses(model, qpos)
     for b in bodies:
         if b == 0:
             continue
