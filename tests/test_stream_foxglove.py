@@ -166,3 +166,98 @@ def test_the_live_estimate_is_served_on_foxglove_websocket(tmp_path):
     model = load_config(CONFIG).load_model()
     assert list(msg.name) == [model.joint(j).name for j in range(model.njnt)]
     assert np.all(np.isfinite(msg.position))
+
+
+class _PublishingBridge(foxglove.ServerListener):
+    """A foxglove-sdk server with the clientPublish capability, as a robot's foxglove_bridge
+    runs it: what clients advertise and send is kept (the bridge would publish it to ROS 2)."""
+
+    def __init__(self, publish: bool = True) -> None:
+        self.advertised: dict[int, object] = {}
+        self.data: list[tuple[int, bytes]] = []
+        capabilities = [foxglove.Capability.ClientPublish] if publish else []
+        self.server = foxglove.start_server(
+            host="127.0.0.1",
+            port=0,
+            server_listener=self,
+            capabilities=capabilities,
+            supported_encodings=["cdr"],
+        )
+
+    def on_client_advertise(self, client, channel) -> None:
+        self.advertised[channel.id] = channel
+
+    def on_message_data(self, client, client_channel_id, data) -> None:
+        self.data.append((client_channel_id, bytes(data)))
+
+
+def test_the_estimate_is_published_into_the_robots_graph_through_its_bridge(tmp_path):
+    bridge = _PublishingBridge()
+    replay = subprocess.Popen(
+        [*PHYSFUSE, "replay", str(LOG), "--to", "tcp://127.0.0.1:0", "--rate", "0"],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert replay.stderr is not None
+    port = int(replay.stderr.readline().rsplit(" ", 1)[1])
+    node = subprocess.run(
+        [
+            *PHYSFUSE,
+            "stream",
+            "--config",
+            str(CONFIG),
+            "--source",
+            f"tcp://127.0.0.1:{port}",
+            "--bridge-publish",
+            f"ws://127.0.0.1:{bridge.server.port}",
+            "--quiet",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    replay.wait(timeout=30)
+    assert node.returncode == 0, node.stderr
+    bridge.server.stop()
+    topics = {ch.topic: ch for ch in bridge.advertised.values()}
+    assert "/estimate/joint_states" in topics and "/estimate_smoothed/joint_states" in topics
+    assert not any(t.endswith("/contacts") for t in topics)  # physfuse's own type stays home
+    joints = topics["/estimate_smoothed/joint_states"]
+    assert joints.encoding == "cdr" and joints.schema_name == "sensor_msgs/msg/JointState"
+    frames = [d for c, d in bridge.data if c == joints.id]
+    schema = Schema(id=1, name=joints.schema_name, encoding="ros2msg", data=joints.schema)
+    decode = DecoderFactory().decoder_for("cdr", schema)
+    assert decode is not None
+    positions = [decode(frame).position[0] for frame in frames]
+    assert len(frames) >= 1490 and np.all(np.isfinite(positions))
+
+
+def test_a_bridge_without_client_publish_is_one_line(tmp_path):
+    bridge = _PublishingBridge(publish=False)
+    node = subprocess.run(
+        [
+            *PHYSFUSE,
+            "stream",
+            "--config",
+            str(CONFIG),
+            "--source",
+            "-",
+            "--out",
+            str(tmp_path / "x.mcap"),
+            "--bridge-publish",
+            f"ws://127.0.0.1:{bridge.server.port}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+        stdin=subprocess.DEVNULL,
+    )
+    bridge.server.stop()
+    assert node.returncode == 2 and node.stderr.count("\n") == 1, node.stderr
+    assert "does not offer clientPublish" in node.stderr
+    assert not (tmp_path / "x.mcap").exists()  # nothing half-written

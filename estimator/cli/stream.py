@@ -71,6 +71,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(serve), or a recording file that grows with the run",
     )
     parser.add_argument(
+        "--bridge-publish",
+        metavar="ws://HOST:PORT",
+        help="publish the estimate into the robot's ROS 2 graph through its foxglove_bridge "
+        "(which must offer clientPublish): Odometry, JointState, WrenchStamped, AccelStamped",
+    )
+    parser.add_argument(
         "--foxglove",
         type=int,
         metavar="PORT",
@@ -118,9 +124,7 @@ def run(args: argparse.Namespace) -> int:
     imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
     run_id = str(uuid.uuid4())
     rerun = _Rerun(args.rerun, model, run_id)  # (a viewer that cannot open: before the rest)
-    sinks = []
-    if args.out is not None:
-        sinks.append(EstimateWriter(args.out, model, config.model, stream.h, run_id, chunked=False))
+    sinks = []  # (live ones first: one that cannot start leaves no file behind)
     if args.publish == "-":
         sinks.append(
             EstimateWriter(sys.stdout.buffer, model, config.model, stream.h, run_id, chunked=False)
@@ -130,12 +134,19 @@ def run(args: argparse.Namespace) -> int:
         sinks.append(EstimateWriter(server, model, config.model, stream.h, run_id))
         host = args.publish.rsplit(":", 1)[0]
         print(f"physfuse stream: publishing the estimate on {host}:{server.port}", file=sys.stderr)
+    if args.bridge_publish is not None:
+        from estimator.io.foxglove import BridgePublisher
+
+        bridge = BridgePublisher(args.bridge_publish)
+        sinks.append(EstimateWriter(bridge, model, config.model, stream.h, run_id))
     if args.foxglove is not None:
         from estimator.io.foxglove import FoxgloveSink  # (foxglove-sdk only when asked for)
 
         live = FoxgloveSink(args.foxglove)
         sinks.append(EstimateWriter(live, model, config.model, stream.h, run_id))
         print(f"physfuse stream: serving the estimate on ws://0.0.0.0:{live.port}", file=sys.stderr)
+    if args.out is not None:
+        sinks.append(EstimateWriter(args.out, model, config.model, stream.h, run_id, chunked=False))
     status = Status(args.quiet)
     reader = DecodingReader(args.config, args.source, args.reconnect)
     previous = signal.signal(signal.SIGTERM, _interrupt)

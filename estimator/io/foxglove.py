@@ -4,8 +4,8 @@ estimate served to the Foxglove app.
     for raw, arrival in bridge_messages("ws://robot:8765", topics, stop):   # a source
         stream.push(raw, arrival)
 
-    sink = FoxgloveSink(port=8765)            # serves ws://0.0.0.0:8765 (foxglove-sdk)
-    EstimateWriter(None, model, name, h, sink=sink).write(estimate, knots)
+    EstimateWriter(FoxgloveSink(port=8765), model, name, h).write(estimate, knots)
+    EstimateWriter(BridgePublisher("ws://robot:8765"), ...)   # into the robot's ROS 2 graph
 
 The source speaks the Foxglove WebSocket protocol as a client (subprotocol
 `foxglove.websocket.v1`, which `foxglove_bridge` serves, or `foxglove.sdk.v1`, foxglove-sdk's):
@@ -125,6 +125,96 @@ def _session(
             RawMessage(topic, msg_type, schema, encoding, t_ns, bytes(frame[_HEAD.size :])),
             (arrival),
         )
+
+
+class BridgePublisher:
+    """The estimate published into a robot's ROS 2 graph through its `foxglove_bridge`, as a
+    client of the protocol with the bridge's `clientPublish` capability: each topic is
+    advertised as a client channel (CDR, its ros2msg schema) on first use and each message
+    sent as Client Message Data (opcode 1, channel id u32, payload); the bridge publishes
+    them as ordinary topics. Only standard ROS 2 types go (`ROS_TYPES`): the contact array
+    is physfuse's own type, which the robot's graph does not know."""
+
+    ROS_TYPES = frozenset(
+        {
+            "nav_msgs/msg/Odometry",
+            "sensor_msgs/msg/JointState",
+            "geometry_msgs/msg/WrenchStamped",
+            "geometry_msgs/msg/AccelStamped",
+        }
+    )
+
+    def __init__(self, url: str, timeout_s: float = 5.0) -> None:
+        try:
+            self.ws = connect(url, subprotocols=SUBPROTOCOLS, open_timeout=timeout_s)  # type: ignore[arg-type]
+        except (OSError, InvalidHandshake, InvalidURI, TimeoutError) as err:
+            raise LogError(f"--bridge-publish {url}: cannot connect ({err})") from None
+        info = self._server_info(url, timeout_s)
+        if "clientPublish" not in info.get("capabilities", []):
+            self.ws.close()
+            raise LogError(
+                f"--bridge-publish {url}: the bridge does not offer clientPublish (its "
+                f"capabilities: {', '.join(info.get('capabilities', [])) or 'none'}); start "
+                "foxglove_bridge with capabilities including clientPublish"
+            )
+        encodings = info.get("supportedEncodings") or ["cdr"]
+        if "cdr" not in encodings:
+            self.ws.close()
+            raise LogError(f"--bridge-publish {url}: the bridge takes {encodings}, not cdr")
+        self.channels: dict[str, int] = {}
+
+    def _server_info(self, url: str, timeout_s: float) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                frame = self.ws.recv(timeout=max(deadline - time.monotonic(), 0.01))
+            except TimeoutError:
+                break
+            if isinstance(frame, str):
+                op = json.loads(frame)
+                if op.get("op") == "serverInfo":
+                    return dict(op)
+        self.ws.close()
+        raise LogError(f"--bridge-publish {url}: no serverInfo within {timeout_s:g} s")
+
+    def write(
+        self,
+        topic: str,
+        msg_type: str,
+        fields: Mapping[str, Any],
+        log_time_ns: int,
+        *,
+        qos: str = RELIABLE_QOS,
+    ) -> None:
+        if msg_type not in self.ROS_TYPES:
+            return
+        text, encode = cdr_encoder(msg_type)
+        channel = self.channels.get(topic)
+        if channel is None:
+            channel = self.channels[topic] = len(self.channels) + 1
+            advertise = {
+                "id": channel,
+                "topic": topic,
+                "encoding": "cdr",
+                "schemaName": msg_type,
+                "schema": text,
+                "schemaEncoding": "ros2msg",
+            }
+            self.ws.send(json.dumps({"op": "advertise", "channels": [advertise]}))
+        self.ws.send(struct.pack("<BI", MESSAGE_DATA, channel) + encode(fields))
+
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """(The ROS graph has no place for it.)"""
+
+    def flush(self) -> None:
+        """(Frames leave as they are sent.)"""
+
+    def finish(self) -> None:
+        if self.channels:
+            self.ws.send(
+                json.dumps({"op": "unadvertise", "channelIds": list(self.channels.values())})
+            )
+        self.ws.close()
 
 
 class FoxgloveSink:
