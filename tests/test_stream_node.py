@@ -352,3 +352,38 @@ def test_the_live_rerun_recording_reads_back(tmp_path):
     times = sorted(set(arm[0].time_ns))
     assert len(times) >= 1490 and times[0] >= 0 and times[-1] < 3.1e9
     assert any(path.startswith("/plots/uncertainty/") for path in entities)
+
+
+def test_a_rosbag2_folder_being_recorded_is_followed_split_by_split(tmp_path):
+    """A recorder writes split 0 piece by piece, closes it, then split 1: the node follows
+    the folder and estimates through both."""
+    import io
+
+    first, second = _halves()
+    folder = tmp_path / "bag"
+    folder.mkdir()
+    splits = []
+    for part in (first, second):
+        buffer = io.BytesIO()
+        send(part, buffer)
+        splits.append(buffer.getvalue())
+
+    def record() -> None:
+        for i, data in enumerate(splits):
+            with (folder / f"bag_{i}.mcap").open("wb") as f:
+                for at in range(0, len(data), 20_000):
+                    f.write(data[at : at + 20_000])
+                    f.flush()
+                    time.sleep(0.01)
+
+    recorder = threading.Thread(target=record, daemon=True)
+    recorder.start()
+    out, stats = tmp_path / "live.mcap", tmp_path / "stats.json"
+    node = _stream(str(folder), out, "--stats", str(stats), "--quiet")
+    _, err = node.communicate(timeout=300)
+    recorder.join(timeout=60)
+    assert node.returncode == 0, err
+    assert json.loads(stats.read_text())["messages"] == len(first) + len(second)
+    model = load_config(CONFIG).load_model()
+    t, _ = read_state_topics(out, "/estimate_smoothed").qpos(model)
+    assert second[-1].log_time_ns - t[-1] < 0.1e9

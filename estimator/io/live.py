@@ -33,7 +33,7 @@ from urllib.parse import urlsplit
 from mcap.writer import Writer
 
 from estimator.errors import LogError
-from estimator.io.logs.source import RawMessage, open_log, open_stream
+from estimator.io.logs.source import RawMessage, open_log, open_stream, split_index
 from estimator.io.mcap_writer import Positioned, Ros2Writer
 
 BACKOFF_S = (0.1, 2.0)  # first and longest wait between connection attempts
@@ -97,11 +97,43 @@ def messages(
             f"source {spec!r}: no such file (expected '-', tcp://HOST:PORT, ws://HOST:PORT or "
             "a file)"
         )
+    if path.is_dir():
+        yield from _follow_folder(path, stop, follow_s, log)
+        return
+    yield from _follow_file(path, stop, follow_s, log)
+
+
+def _follow_file(
+    path: Path, stop: threading.Event, follow_s: float, log: Callable[[str], None]
+) -> Iterator[tuple[RawMessage, float]]:
+    """A file being written, to its footer or until it has not grown for `follow_s`."""
     with path.open("rb") as f:
         source = open_stream(cast(IO[bytes], _Growing(f, follow_s, stop)), str(path))
         yield from _read(source, stop)
         for line in source.warnings:
+            if source.truncated and "no footer" in line:
+                continue  # (a recording still open, or stopped: its end is here)
             log(line)
+
+
+def _follow_folder(
+    folder: Path, stop: threading.Event, follow_s: float, log: Callable[[str], None]
+) -> Iterator[tuple[RawMessage, float]]:
+    """A rosbag2 folder being recorded: its split files (`name_0.mcap`, `name_1.mcap`, ...)
+    in order, each followed to its footer (the recorder closes a split before it opens the
+    next) or until it has not grown for `follow_s` and no later split has appeared."""
+    done: set[Path] = set()
+    waited = time.monotonic()
+    while not stop.is_set():
+        splits = [p for p in sorted(folder.glob("*.mcap"), key=split_index) if p not in done]
+        if not splits:
+            if time.monotonic() - waited > follow_s:
+                return
+            time.sleep(0.02)
+            continue
+        done.add(splits[0])
+        yield from _follow_file(splits[0], stop, follow_s, log)
+        waited = time.monotonic()
 
 
 def _read(

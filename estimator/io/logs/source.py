@@ -221,7 +221,7 @@ def _rosbag2_files(folder: Path) -> list[Path]:
     """
     meta_path = folder / "metadata.yaml"
     if not meta_path.is_file():
-        files = sorted(folder.glob("*.mcap"), key=_split_index)
+        files = sorted(folder.glob("*.mcap"), key=split_index)
         if not files:
             raise LogError(f"{folder}: not a rosbag2 folder (no metadata.yaml, no .mcap files)")
         return files
@@ -247,7 +247,7 @@ def _rosbag2_files(folder: Path) -> list[Path]:
     return [folder / Path(p).name for p in relative]
 
 
-def _split_index(path: Path) -> tuple[int, str]:
+def split_index(path: Path) -> tuple[int, str]:
     match = re.search(r"_(\d+)\.mcap$", path.name)
     return (int(match.group(1)) if match else -1, path.name)
 
