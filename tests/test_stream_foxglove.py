@@ -7,13 +7,12 @@ from __future__ import annotations
 import json
 import struct
 import subprocess
-import sys
 import threading
 import time
-from pathlib import Path
 
 import foxglove
 import numpy as np
+from live_nodes import CONFIG, LOG, PHYSFUSE, ROOT, replay
 from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 from websockets.sync.client import connect
@@ -21,12 +20,6 @@ from websockets.sync.client import connect
 from estimator.config import load_config
 from estimator.io.logs.source import open_log
 from estimator.io.state_topics import read_state_topics
-
-ROOT = Path(__file__).resolve().parent.parent
-NAME = "single_joint"
-LOG = ROOT / "recordings" / f"{NAME}.mcap"
-CONFIG = ROOT / "configs" / f"{NAME}.toml"
-PHYSFUSE = [sys.executable, "-m", "estimator.cli"]
 
 
 class _Bridge(foxglove.ServerListener):
@@ -106,14 +99,7 @@ def test_a_foxglove_bridge_is_a_live_source(tmp_path):
 
 
 def test_the_live_estimate_is_served_on_foxglove_websocket(tmp_path):
-    replay = subprocess.Popen(
-        [*PHYSFUSE, "replay", str(LOG), "--to", "tcp://127.0.0.1:0", "--rate", "1"],
-        cwd=ROOT,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    assert replay.stderr is not None
-    port = int(replay.stderr.readline().rsplit(" ", 1)[1])
+    replayer, port = replay(rate=1)
     node = subprocess.Popen(
         [
             *PHYSFUSE,
@@ -157,8 +143,8 @@ def test_the_live_estimate_is_served_on_foxglove_websocket(tmp_path):
     finally:
         node.terminate()
         node.wait(timeout=60)
-        replay.kill()
-        replay.wait(timeout=30)
+        replayer.kill()
+        replayer.wait(timeout=30)
     assert schema is not None and len(received) == 5
     decode = DecoderFactory().decoder_for("cdr", schema)
     assert decode is not None
@@ -193,14 +179,7 @@ class _PublishingBridge(foxglove.ServerListener):
 
 def test_the_estimate_is_published_into_the_robots_graph_through_its_bridge(tmp_path):
     bridge = _PublishingBridge()
-    replay = subprocess.Popen(
-        [*PHYSFUSE, "replay", str(LOG), "--to", "tcp://127.0.0.1:0", "--rate", "0"],
-        cwd=ROOT,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    assert replay.stderr is not None
-    port = int(replay.stderr.readline().rsplit(" ", 1)[1])
+    replayer, port = replay(rate=0)
     node = subprocess.run(
         [
             *PHYSFUSE,
@@ -219,7 +198,7 @@ def test_the_estimate_is_published_into_the_robots_graph_through_its_bridge(tmp_
         timeout=300,
         check=False,
     )
-    replay.wait(timeout=30)
+    replayer.wait(timeout=30)
     assert node.returncode == 0, node.stderr
     bridge.server.stop()
     topics = {ch.topic: ch for ch in bridge.advertised.values()}

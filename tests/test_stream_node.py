@@ -8,7 +8,6 @@ import json
 import signal
 import socket
 import subprocess
-import sys
 import threading
 import time
 from dataclasses import replace
@@ -16,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from live_nodes import CONFIG, LOG, PHYSFUSE, ROOT, replay, stream, wait_for_size
 from mcap.reader import make_reader
 
 from estimator.batch import estimate
@@ -27,46 +27,6 @@ from estimator.io.logs.source import open_stream as open_log_stream
 from estimator.io.state_topics import at_times, read_state_topics, trajectory_errors
 from estimator.settings import Settings
 from estimator.stream import Stream
-
-ROOT = Path(__file__).resolve().parent.parent
-NAME = "single_joint"  # the smallest bundled recording: 3 s, 1 500 knots
-LOG = ROOT / "recordings" / f"{NAME}.mcap"
-CONFIG = ROOT / "configs" / f"{NAME}.toml"
-PHYSFUSE = [sys.executable, "-m", "estimator.cli"]
-
-
-def _replay(rate: float) -> tuple[subprocess.Popen, int]:
-    """`physfuse replay` of the recording on a free loopback port: (process, port)."""
-    proc = subprocess.Popen(
-        [*PHYSFUSE, "replay", str(LOG), "--to", "tcp://127.0.0.1:0", "--rate", str(rate)],
-        cwd=ROOT,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    assert proc.stderr is not None
-    line = proc.stderr.readline()  # "physfuse replay: serving ... on port N"
-    assert "on port" in line, line
-    return proc, int(line.rsplit(" ", 1)[1])
-
-
-def _stream(source: str, out: Path, *more: str) -> subprocess.Popen:
-    return subprocess.Popen(
-        [
-            *PHYSFUSE,
-            "stream",
-            "--config",
-            str(CONFIG),
-            "--source",
-            source,
-            "--out",
-            str(out),
-            *more,
-        ],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
 
 
 def _joint_error(path: Path, prefix: str) -> tuple[float, int]:
@@ -88,11 +48,11 @@ def batch_joint_error() -> float:
 
 
 def test_a_recording_replayed_over_tcp_is_estimated_as_it_arrives(tmp_path, batch_joint_error):
-    replay, port = _replay(rate=0)
+    replayer, port = replay(rate=0)
     out, stats = tmp_path / "live.mcap", tmp_path / "stats.json"
-    node = _stream(f"tcp://127.0.0.1:{port}", out, "--stats", str(stats), "--quiet")
+    node = stream(f"tcp://127.0.0.1:{port}", out, "--stats", str(stats), "--quiet")
     _, err = node.communicate(timeout=300)
-    replay.wait(timeout=30)
+    replayer.wait(timeout=30)
     assert node.returncode == 0, err
     report = json.loads(stats.read_text())
     knots = round(3.0 / report["knot_s"])
@@ -109,16 +69,14 @@ def test_a_recording_replayed_over_tcp_is_estimated_as_it_arrives(tmp_path, batc
 
 
 def test_a_killed_node_leaves_an_mcap_that_reads_back(tmp_path):
-    replay, port = _replay(rate=1)
+    replayer, port = replay(rate=1)
     out = tmp_path / "live.mcap"
-    node = _stream(f"tcp://127.0.0.1:{port}", out, "--quiet")
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and (not out.exists() or out.stat().st_size < 50_000):
-        time.sleep(0.05)
+    node = stream(f"tcp://127.0.0.1:{port}", out, "--quiet")
+    wait_for_size(out, 50_000)
     node.send_signal(signal.SIGKILL)
     node.wait(timeout=30)
-    replay.kill()
-    replay.wait(timeout=30)
+    replayer.kill()
+    replayer.wait(timeout=30)
     assert node.returncode == -signal.SIGKILL
     model = load_config(CONFIG).load_model()
     t, q = read_state_topics(out, "/estimate").qpos(model)  # (a truncated file: salvaged)
@@ -126,16 +84,14 @@ def test_a_killed_node_leaves_an_mcap_that_reads_back(tmp_path):
 
 
 def test_sigterm_smooths_the_window_and_closes_the_file(tmp_path):
-    replay, port = _replay(rate=1)
+    replayer, port = replay(rate=1)
     out = tmp_path / "live.mcap"
-    node = _stream(f"tcp://127.0.0.1:{port}", out, "--quiet")
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and (not out.exists() or out.stat().st_size < 50_000):
-        time.sleep(0.05)
+    node = stream(f"tcp://127.0.0.1:{port}", out, "--quiet")
+    wait_for_size(out, 50_000)
     node.send_signal(signal.SIGTERM)
     node.wait(timeout=60)
-    replay.kill()
-    replay.wait(timeout=30)
+    replayer.kill()
+    replayer.wait(timeout=30)
     assert node.returncode == 130
     with out.open("rb") as f:  # a whole MCAP: its summary and footer are there
         reader = make_reader(f)
@@ -176,7 +132,7 @@ def test_malformed_bytes_and_a_disconnect_do_not_stop_the_node(tmp_path):
 
     threading.Thread(target=serve, daemon=True).start()
     out, stats = tmp_path / "live.mcap", tmp_path / "stats.json"
-    node = _stream(f"tcp://127.0.0.1:{port}", out, "--stats", str(stats))
+    node = stream(f"tcp://127.0.0.1:{port}", out, "--stats", str(stats))
     _, err = node.communicate(timeout=300)
     assert node.returncode == 0, err
     assert "reconnecting" in err and err.count(": connected") == 2
@@ -228,10 +184,10 @@ def test_a_divergence_is_detected_reset_and_reported():
 
 
 def test_a_source_that_is_not_there_is_one_line(tmp_path):
-    node = _stream("tcp://127.0.0.1:1", tmp_path / "x.mcap", "--reconnect", "0.3", "--quiet")
+    node = stream("tcp://127.0.0.1:1", tmp_path / "x.mcap", "--reconnect", "0.3", "--quiet")
     _, err = node.communicate(timeout=120)
     assert "no connection for 0.3 s" in err and "Traceback" not in err
-    bad = _stream("udp://robot:9", tmp_path / "y.mcap")
+    bad = stream("udp://robot:9", tmp_path / "y.mcap")
     _, err = bad.communicate(timeout=120)
     assert bad.returncode == 2 and err.strip().count("\n") == 0
     assert "expected tcp://HOST:PORT" in err
@@ -274,10 +230,10 @@ def test_derivatives_are_reused_only_near_where_they_were_taken():
     assert kept.get(5, q, v, a) is None and (kept.reused, kept.computed) == (1, 1)
 
 
-def test_the_estimate_is_published_as_a_live_mcap_stream():
+def test_the_estimate_is_published_as_a_live_mcapstream():
     """--publish tcp://: another program connects and reads the estimate as it is made, with
     physfuse's own byte-stream reader."""
-    replay, port = _replay(rate=1)
+    replayer, port = replay(rate=1)
     node = subprocess.Popen(
         [
             *PHYSFUSE,
@@ -307,8 +263,8 @@ def test_the_estimate_is_published_as_a_live_mcap_stream():
     finally:
         node.terminate()
         node.wait(timeout=60)
-        replay.kill()
-        replay.wait(timeout=30)
+        replayer.kill()
+        replayer.wait(timeout=30)
     assert topics.count("/estimate/joint_states") >= 5
 
 
@@ -340,11 +296,11 @@ def test_the_live_rerun_recording_reads_back(tmp_path):
     pose at (nearly) every knot, the uncertainty plots, on seconds since the first knot."""
     from test_visualize import read_recording
 
-    replay, port = _replay(rate=0)
+    replayer, port = replay(rate=0)
     rrd = tmp_path / "live.rrd"
-    node = _stream(f"tcp://127.0.0.1:{port}", tmp_path / "x.mcap", "--rerun", str(rrd), "--quiet")
+    node = stream(f"tcp://127.0.0.1:{port}", tmp_path / "x.mcap", "--rerun", str(rrd), "--quiet")
     _, err = node.communicate(timeout=300)
-    replay.wait(timeout=30)
+    replayer.wait(timeout=30)
     assert node.returncode == 0, err
     entities = read_recording(rrd)
     arm = [e for path, e in entities.items() if path.startswith("/world/model/")]
@@ -379,7 +335,7 @@ def test_a_rosbag2_folder_being_recorded_is_followed_split_by_split(tmp_path):
     recorder = threading.Thread(target=record, daemon=True)
     recorder.start()
     out, stats = tmp_path / "live.mcap", tmp_path / "stats.json"
-    node = _stream(str(folder), out, "--stats", str(stats), "--quiet")
+    node = stream(str(folder), out, "--stats", str(stats), "--quiet")
     _, err = node.communicate(timeout=300)
     recorder.join(timeout=60)
     assert node.returncode == 0, err

@@ -31,7 +31,7 @@ from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 from websockets.sync.client import ClientConnection, connect
 
 from estimator.errors import LogError
-from estimator.io.live import BACKOFF_S
+from estimator.io.live import Reconnect
 from estimator.io.logs.source import RawMessage
 from estimator.io.mcap_writer import RELIABLE_QOS, cdr_encoder
 
@@ -49,30 +49,24 @@ def bridge_messages(
 ) -> Iterator[tuple[RawMessage, float]]:
     """(message, arrival on `time.perf_counter`) from a Foxglove WebSocket server, for the
     channels on `topics`; reconnects with backoff until `reconnect_s` without a connection."""
-    wait, since, connected = BACKOFF_S[0], time.monotonic(), False
+    retry = Reconnect(url, reconnect_s, log)
     while not stop.is_set():
         try:
             ws = connect(url, subprotocols=SUBPROTOCOLS, open_timeout=2.0)  # type: ignore[arg-type]
         except InvalidURI as err:
             raise LogError(f"--source {url!r}: {err}") from None
         except (OSError, InvalidHandshake, TimeoutError) as err:
-            if time.monotonic() - since > reconnect_s:
-                line = f"source {url}: no connection for {reconnect_s:g} s ({err})"
-                if not connected:
-                    raise LogError(line) from None
-                log(f"{line}; giving up")
-                return
-            time.sleep(wait)
-            wait = min(2 * wait, BACKOFF_S[1])
-            continue
+            if retry.failed(err):
+                continue
+            return
         log(f"source {url}: connected ({ws.subprotocol})")
-        connected, wait = True, BACKOFF_S[0]
+        retry.succeeded()
         with ws, contextlib.suppress(ConnectionClosed):
             yield from _session(ws, url, topics, stop, log)
         if stop.is_set():
             return
         log(f"source {url}: disconnected; reconnecting")
-        since = time.monotonic()
+        retry.lost()
 
 
 def _session(

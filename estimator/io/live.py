@@ -149,25 +149,17 @@ def _tcp(
     spec: str, stop: threading.Event, reconnect_s: float, log: Callable[[str], None]
 ) -> Iterator[tuple[RawMessage, float]]:
     host, port = parse_address(spec, "source")
-    wait, since = BACKOFF_S[0], time.monotonic()
-    connected = False
+    retry = Reconnect(spec, reconnect_s, log)
     while not stop.is_set():
         try:
             sock = socket.create_connection((host, port), timeout=1.0)
         except OSError as err:
-            if time.monotonic() - since > reconnect_s:
-                line = f"source {spec}: no connection for {reconnect_s:g} s ({err})"
-                if not connected:  # nothing ever came: the source is wrong
-                    raise LogError(line) from None
-                log(f"{line}; giving up")
-                return
-            time.sleep(wait)
-            wait = min(2 * wait, BACKOFF_S[1])
-            continue
+            if retry.failed(err):
+                continue
+            return
         sock.settimeout(None)
         log(f"source {spec}: connected")
-        connected = True
-        wait = BACKOFF_S[0]
+        retry.succeeded()
         with sock, sock.makefile("rb") as f:
             source = open_stream(f, spec)
             try:
@@ -179,7 +171,7 @@ def _tcp(
         if not source.truncated:  # the stream ended with its footer: the end of the run
             return
         log(f"source {spec}: disconnected mid-stream; reconnecting")
-        since = time.monotonic()
+        retry.lost()
 
 
 class DecodingReader:
@@ -262,6 +254,35 @@ def _decode(
     finally:
         out.put(("counts", count, extractor.bad_counts()))
         out.put(("end",))
+
+
+class Reconnect:
+    """When to try a source again: after 0.1 s, doubling to 2 s (`BACKOFF_S`), until
+    `reconnect_s` have passed since the last connection; a source that never connected is
+    then an error (LogError), one that did has ended."""
+
+    def __init__(self, spec: str, reconnect_s: float, log: Callable[[str], None]) -> None:
+        self.spec, self.reconnect_s, self.log = spec, reconnect_s, log
+        self.wait, self.since, self.connected = BACKOFF_S[0], time.monotonic(), False
+
+    def failed(self, err: Exception) -> bool:
+        """A connection attempt failed: True (after the wait) to try again, False to stop."""
+        if time.monotonic() - self.since > self.reconnect_s:
+            line = f"source {self.spec}: no connection for {self.reconnect_s:g} s ({err})"
+            if not self.connected:  # nothing ever came: the source is wrong
+                raise LogError(line) from None
+            self.log(f"{line}; giving up")
+            return False
+        time.sleep(self.wait)
+        self.wait = min(2 * self.wait, BACKOFF_S[1])
+        return True
+
+    def succeeded(self) -> None:
+        self.connected, self.wait = True, BACKOFF_S[0]
+
+    def lost(self) -> None:
+        """The connection dropped: the time to give up counts from now."""
+        self.since = time.monotonic()
 
 
 class _Growing(io.RawIOBase):
