@@ -19,12 +19,14 @@ arrival of the sample that made a knot ready to the update that publishes its ne
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from estimator.config import Config
+from estimator.errors import LogError
 from estimator.estimate import Estimate
 from estimator.io.logs.measurements import (
     STREAM_COMPONENTS,
@@ -34,6 +36,7 @@ from estimator.io.logs.measurements import (
 )
 from estimator.io.logs.samples import SampleExtractor
 from estimator.io.logs.source import RawMessage
+from estimator.knots import MAX_KNOTS
 from estimator.problem import model_with_sensors
 from estimator.run import WINDOW_MARGIN_NS
 from estimator.settings import Settings
@@ -122,7 +125,8 @@ class Stream:
         self.lag: FixedLag | None = None
         self.ready_until = -1  # the newest ready key (global)
         self.solved_until = -1  # the newest key solved
-        self.ready_at: dict[int, float] = {}  # key → arrival time of the sample that readied it
+        # (newest key readied, arrival of the sample that readied it), oldest first
+        self.ready_marks: deque[tuple[int, float]] = deque()
         self.counts = Counts()
 
     # -- in --------------------------------------------------------------------------------
@@ -201,11 +205,18 @@ class Stream:
             if self.lag is None:
                 return
         live = [t for t in tracked.values() if t >= newest - self.stale_ns]
-        watermark = min(live)
-        ready = (watermark - self.lag.t0_ns) // self.step_ns
-        for k in range(self.ready_until + 1, ready + 1):
-            self.ready_at[k] = arrival
-        self.ready_until = max(self.ready_until, int(ready))
+        ready = int((min(live) - self.lag.t0_ns) // self.step_ns)
+        if ready <= self.ready_until:
+            return
+        if ready - self.ready_until >= MAX_KNOTS:  # streams on different clocks, or a jump
+            each = ", ".join(f"{name} {t / 1e9:.6g} s" for name, t in tracked.items())
+            raise LogError(
+                f"the streams' times jumped over {MAX_KNOTS:.0e} knots ({each}); are they on "
+                "different clocks? Align them with a stream's time_offset_ns, or read the "
+                'recorder\'s times with stamp = "log"'
+            )
+        self.ready_marks.append((ready, arrival))
+        self.ready_until = ready
 
     def _start(self, newest: int) -> None:
         """The grid starts once every mapped stream (commands aside) has a sample, or
@@ -224,6 +235,14 @@ class Stream:
                 "the first stream)"
             )
         self.lag = FixedLag(self.config, self.settings, self.compiled, earliest, self.lag_knots)
+
+    def _arrival(self, key: int, default: float) -> float:
+        """When the sample that readied `key` arrived (marks of keys before it are dropped:
+        knots are published in order)."""
+        marks = self.ready_marks
+        while marks and marks[0][0] < key:
+            marks.popleft()
+        return marks[0][1] if marks else default
 
     def _measurements(self) -> dict[str, Measurement]:
         """The buffered samples around the window, as the batch reader's arrays."""
@@ -256,9 +275,7 @@ class Stream:
 
     def _published(self, step: LagStep, backlog: int, start: float) -> Update:
         now = self.clock()
-        latency = [now - self.ready_at.pop(step.first + i, now) for i in step.newest]
-        for k in [k for k in self.ready_at if k < step.first]:  # (keys solved unpublished)
-            del self.ready_at[k]
+        latency = [now - self._arrival(step.first + i, now) for i in step.newest]
         c = self.counts
         c.updates += 1
         c.knots_newest += len(step.newest)

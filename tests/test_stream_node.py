@@ -343,3 +343,37 @@ def test_a_rosbag2_folder_being_recorded_is_followed_split_by_split(tmp_path):
     model = load_config(CONFIG).load_model()
     t, _ = read_state_topics(out, "/estimate_smoothed").qpos(model)
     assert second[-1].log_time_ns - t[-1] < 0.1e9
+
+
+def test_a_source_without_the_configs_topics_is_one_line(tmp_path):
+    replayer = subprocess.Popen(
+        [*PHYSFUSE, "replay", str(LOG), "--to", "-", "--rate", "0", "--topics", "/tf"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+    )
+    node = subprocess.run(
+        [*PHYSFUSE, "stream", "--config", str(CONFIG), "--source", "-", "--quiet"],
+        cwd=ROOT,
+        stdin=replayer.stdout,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    replayer.wait(timeout=30)
+    assert node.returncode == 2 and node.stderr.count("\n") == 1, node.stderr
+    assert "no message on the config's topics (/joint_commands, /joint_states" in node.stderr
+
+
+def test_streams_on_different_clocks_are_one_error_not_a_hang():
+    from estimator.errors import LogError
+    from estimator.io.logs.measurements import Sample
+
+    config = load_config(CONFIG)
+    stream = Stream(config, Settings.from_config(config), lag_s=0.5)
+    stream.push_sample(Sample("joints", 1_000_000_000, 0, np.zeros((1, 3))))
+    stream.push_sample(Sample("mocap_arm", 1_000_001_000, 0, np.zeros((1, 7))))
+    stream.push_sample(Sample("joints", 1_002_000_000, 0, np.zeros((1, 3))))
+    with pytest.raises(LogError, match="different clocks"):  # boot time, then epoch time
+        stream.push_sample(Sample("mocap_arm", 1_700_000_000_000_000_000, 0, np.zeros((1, 7))))

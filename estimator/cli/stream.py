@@ -180,6 +180,12 @@ def run(args: argparse.Namespace) -> int:
     status.show(stream, final=True)
     if args.stats is not None:
         args.stats.write_text(json.dumps(status.report(stream), indent=2) + "\n")
+    if not status.error and stream.counts.samples == 0 and not interrupted:
+        topics = ", ".join(sorted({s.topic for s in config.streams.values()}))
+        status.error = (
+            f"no message on the config's topics ({topics}) came from {args.source} "
+            f"({status.messages} messages on other topics)"
+        )
     if status.error:
         print(f"physfuse stream: error: {status.error}", file=sys.stderr)
         return 2
