@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimator.config import Config
-from estimator.errors import LogError
+from estimator.errors import ConfigError, LogError
 from estimator.estimate import Estimate
 from estimator.io.logs.measurements import (
     STREAM_COMPONENTS,
@@ -147,6 +147,11 @@ class Stream:
     def push_sample(self, sample: Sample, arrival: float | None = None) -> None:
         """One decoded sample (a user's node that decodes its own messages)."""
         arrival = self.clock() if arrival is None else arrival
+        if sample.stream not in self.buffers:
+            raise ConfigError(
+                f"a sample of stream {sample.stream!r}: not a stream of {self.config.path} "
+                f"(its streams: {', '.join(self.buffers)})"
+            )
         lag = self.lag
         if lag is not None and sample.t_ns < lag.t_ns(lag.first, lag.first + 1)[0]:
             self.counts.late += 1  # its knots have left the window

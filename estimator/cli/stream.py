@@ -210,8 +210,9 @@ def _drain(inbox: Any, stream: Stream, status: Status) -> bool:
             for sample in item[1]:
                 stream.push_sample(sample, item[2])
             status.received += 1
-        elif kind == "counts":
+        elif kind == "counts":  # (decoded in the reader process)
             status.messages, status.bad = item[1], item[2]
+            stream.counts.messages = item[1]
         elif kind == "log":
             status.log(item[1])
         elif kind == "error":

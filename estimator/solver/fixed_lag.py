@@ -147,13 +147,9 @@ class FixedLag:
         stop = self.first + len(self.qpos)
         if stop - self.first < MIN_KEYS:
             return None
-        lag, self.lag_knots = self.lag_knots, 0
-        try:
-            t_ns = self.t_ns(self.first, stop)
-            problem = build_problem(self.config, measurements, self.settings, t_ns, self.compiled)
-            result = solve_window(problem, self.qpos, self._bias(problem.nb), False, self.prior)
-        finally:
-            self.lag_knots = lag
+        t_ns = self.t_ns(self.first, stop)
+        problem = build_problem(self.config, measurements, self.settings, t_ns, self.compiled)
+        result = solve_window(problem, self.qpos, self._bias(problem.nb), False, self.prior)
         W = len(t_ns)
         smoothed = range(1, W - 1)
         std = np.full((W, self.model.nv), np.nan)
