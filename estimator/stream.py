@@ -3,7 +3,8 @@
     stream = Stream(config, Settings.from_config(config), lag_s=0.5)
     for raw in source:                       # RawMessage (estimator.io.logs), in arrival order
         stream.push(raw)                     # decoded, checked, buffered
-        for update in stream.update():       # the knots that became ready, solved
+        for update in stream.update():       # the knots that became ready, solved (or
+                                             # update(min_knots=25): fewer, larger solves)
             update.estimate, update.newest, update.smoothed
     stream.close()                           # the end: the rest of the window, smoothed
 
@@ -169,10 +170,13 @@ class Stream:
 
     # -- out -------------------------------------------------------------------------------
 
-    def update(self) -> Iterator[Update]:
+    def update(self, min_knots: int = 1) -> Iterator[Update]:
         """Solve the keys that became ready since the last update: one solve for all of
         them, or (a backlog) one per `lag_knots` new keys, so that a window never grows
-        past twice the lag."""
+        past twice the lag. min_knots: wait until at least this many keys are ready (fewer,
+        larger solves: throughput for latency)."""
+        if self.ready_until - self.solved_until < min_knots:
+            return
         while self.lag is not None and self.ready_until > self.solved_until:
             start = self.clock()
             backlog = self.ready_until - self.solved_until
