@@ -26,10 +26,13 @@ dropouts and outliers mixed in). With one:
                  body, moment, geom and parameter (`SignedMismatch`).
     no_commands  nominal, but the commands are not logged: no command topic in the log and
                  no command stream in the config.
+    disturbances nominal + unlogged pushes on random bodies, an IMU bias step and an encoder
+                 offset jump, their truth in the log (`disturbances`: what the contact
+                 diagnostics must find).
 
-Under every condition the seed draws the same model mismatch (up to `mismatch`'s signed
-factors), controller and pushes, so nominal, occlusion, outliers and no_commands simulate
-the same true motion.
+Under every condition but disturbances the seed draws the same model mismatch (up to
+`mismatch`'s signed factors), controller and pushes, so nominal, occlusion, outliers and
+no_commands simulate the same true motion.
 """
 
 from __future__ import annotations
@@ -42,18 +45,22 @@ import mujoco
 import numpy as np
 
 from estimator.io.mcap_writer import Message
+from estimator.simulate import disturbances
 from estimator.simulate.errors import SimulationError
 from estimator.simulate.mismatch import SignedMismatch
 from estimator.simulate.scenarios import Scenario
 from estimator.simulate.sensors import (
     NS,
     Commands,
+    Encoders,
+    Imu,
     MocapMarkers,
     MocapPoses,
     Sensor,
     SensorOutput,
     Trajectory,
 )
+from physics.model import load_model
 
 CONDITIONS: Mapping[str, str] = {
     "nominal": "sensor noise, biases and latency, default model mismatch; no mocap dropouts "
@@ -62,6 +69,8 @@ CONDITIONS: Mapping[str, str] = {
     "outliers": "nominal + 2% of mocap frames per body (marker) off by 3-15 cm",
     "mismatch": "nominal with the model off by exactly ±10% mass, ±30% friction",
     "no_commands": "nominal without the command topic (no command stream in the config)",
+    "disturbances": "nominal + pushes on random bodies (20-100 N, 0.05-0.3 s), an IMU bias "
+    "step, an encoder offset jump",
 }
 
 OUTLIER_PROBABILITY = 0.02  # per frame and body (or marker), the `outliers` condition
@@ -181,7 +190,25 @@ def with_condition(scenario: Scenario, condition: str) -> Scenario:
         mismatch = MISMATCH
     elif condition == "no_commands":
         sensors = tuple(s for s in sensors if not isinstance(s, Commands))
+    elif condition == "disturbances":
+        bodies = disturbances.push_bodies(load_model(scenario.model))
+        faulty = _first(sensors, Imu, disturbances.ImuBiasStep)
+        faulty = _first(faulty, Encoders, disturbances.EncoderJump)
+        return replace(
+            scenario,
+            sensors=faulty,
+            pushes=disturbances.random_body_pushes(bodies),
+            condition=condition,
+        )
     return replace(scenario, sensors=sensors, mismatch=mismatch, condition=condition)
+
+
+def _first(sensors: tuple[Sensor, ...], kind: type, wrap: Any) -> tuple[Sensor, ...]:
+    """The sensors with the first one of `kind` wrapped in `wrap` (unchanged if none)."""
+    for i, sensor in enumerate(sensors):
+        if isinstance(sensor, kind):
+            return (*sensors[:i], wrap(sensor), *sensors[i + 1 :])
+    return sensors
 
 
 def _without_dropouts_or_outliers(sensor: Sensor) -> Sensor:

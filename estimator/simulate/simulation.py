@@ -25,6 +25,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -46,8 +47,10 @@ from estimator.io.mcap_writer import (
     state_data,
     state_messages,
 )
+from estimator.simulate import disturbances
 from estimator.simulate.conditions import CONDITIONS, with_condition
 from estimator.simulate.controllers import Push, apply_pushes
+from estimator.simulate.disturbances import push_events
 from estimator.simulate.errors import SimulationError
 from estimator.simulate.mismatch import Mismatch, MismatchRecord
 from estimator.simulate.scenarios import Controller, Scenario, get_scenario
@@ -146,24 +149,33 @@ def simulate(
     # Newton to machine precision: the forward step and the analytic inverse then agree to
     # ~1e-12 in generalized force (at MuJoCo's default tolerance 1e-8 they can differ by 1e-4)
     dyn.model.opt.tolerance = 0.0
+    start = copy.deepcopy(rng)  # a rerun draws the controller and pushes again from here
     controller = scenario.controller(load_model(scenario.model), rng, duration)
     pushes = scenario.pushes(rng, duration)
 
     trajectory = _run(scenario, dyn.model, controller, pushes, duration, progress)
+    while scenario.condition == "disturbances" and (
+        (fall := disturbances.fall_time(trajectory)) is not None and pushes
+    ):  # a push the robot cannot withstand is left out and the run repeated
+        pushes = disturbances.without_culprit(pushes, fall)
+        rng = copy.deepcopy(start)
+        controller = scenario.controller(load_model(scenario.model), rng, duration)
+        scenario.pushes(rng, duration)
+        trajectory = _run(scenario, dyn.model, controller, pushes, duration, progress)
     messages = _ground_truth(scenario, dyn, trajectory, progress)
     truths: dict[str, dict[str, Any]] = {}
     for sensor in scenario.sensors:
         output = sensor.sample(trajectory, rng)
         messages.extend(output.messages)
         truths[sensor.name] = output.truth
-        if isinstance(sensor, Imu):
-            messages.extend(_imu_bias_messages(sensor, output.truth, trajectory.t0_ns))
+        if isinstance(imu := _wrapped(sensor), Imu):
+            messages.extend(_imu_bias_messages(imu, output.truth, trajectory.t0_ns))
 
     order = sorted(range(len(messages)), key=lambda i: messages[i].log_time_ns)
     topics = {m.topic: m.msg_type for m in messages}
     metadata = _metadata(scenario, seed, duration, trajectory, record, true_softness, pushes)
     if scenario.condition is not None:
-        metadata["physfuse.condition"] = _condition_metadata(scenario.condition, truths)
+        metadata["physfuse.condition"] = _condition_metadata(scenario.condition, truths, pushes)
     try:
         writer = Ros2Writer(out, compression=compression)
     except OSError as err:
@@ -258,7 +270,7 @@ def _simulation_model(scenario: Scenario) -> mujoco.MjModel:
     """The scenario's model, with a gyro and an accelerometer added at each IMU site that
     lacks them (the IMU reads them; sensors change no dynamics)."""
     model = load_model(scenario.model)
-    imus = [s for s in scenario.sensors if isinstance(s, Imu)]
+    imus = [s for s in map(_wrapped, scenario.sensors) if isinstance(s, Imu)]
     for imu in imus:
         site_ids(model, [imu.site], imu.name)  # SimulationError naming the model's sites
     kinds = (mujoco.mjtSensor.mjSENS_GYRO, mujoco.mjtSensor.mjSENS_ACCELEROMETER)
@@ -281,6 +293,13 @@ def _simulation_model(scenario: Scenario) -> mujoco.MjModel:
         return spec.compile()
     except ValueError as err:
         raise SimulationError(f"{scenario.model}: cannot add the IMU sensors: {err}") from err
+
+
+def _wrapped(sensor: Any) -> Any:
+    """The sensor a condition's wrapper (an occlusion, a fault) wraps; itself if none."""
+    while hasattr(sensor, "sensor"):
+        sensor = sensor.sensor
+    return sensor
 
 
 def _has_site_sensor(model: mujoco.MjModel, site: str, kind: int) -> bool:
@@ -374,9 +393,16 @@ def _metadata(
     }
 
 
-def _condition_metadata(condition: str, truths: dict[str, dict[str, Any]]) -> dict[str, str]:
-    """The `physfuse.condition` record: the condition, and the occlusions it drew (if any)."""
+def _condition_metadata(
+    condition: str, truths: dict[str, dict[str, Any]], pushes: tuple[Push, ...]
+) -> dict[str, str]:
+    """The `physfuse.condition` record: the condition, and the occlusions it drew (if any);
+    under `disturbances`, its `events` (disturbances.py)."""
     record = {"name": condition, "description": CONDITIONS[condition]}
+    if condition == "disturbances":
+        events = push_events(pushes)
+        events += [e for truth in truths.values() for e in truth.get("events", [])]
+        record["events"] = json.dumps(sorted(events, key=lambda e: e["start_s"]))
     occlusions = {
         name: truth["occlusions"].tolist()
         for name, truth in truths.items()

@@ -1,0 +1,232 @@
+"""The contact diagnostics on simulated disturbances: recall, false alarms, isolation, force
+error and detection delay per event kind.
+
+    .venv/bin/python benchmarks/diagnostics.py [--scenarios humanoid_push quadruped_trot go2 h1]
+        [--seeds 0 1 2] [--duration 10] [--out DIR]
+
+Per scenario and seed: `physfuse simulate SCENARIO --condition disturbances` (go2 and h1:
+the Menagerie models, `--model physics/models/menagerie/<name>.xml`), the batch physics
+estimate with the config's defaults, `diagnose` with its defaults; events scored against the
+log's truth (`estimator.diagnose.score`). Pushes of at least 30 N for at least 0.1 s are
+counted apart (the target: recall ≥ 95%, isolation ≥ 90%, force error ≤ 20% at ≤ 1 false
+alarm per minute). Prints a table and writes DIR/diagnostics.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from estimator.batch import estimate  # noqa: E402
+from estimator.config import load_config  # noqa: E402
+from estimator.diagnose import diagnose  # noqa: E402
+from estimator.diagnose.score import Matched, score, true_events  # noqa: E402
+from estimator.io.logs import read_log  # noqa: E402
+from estimator.settings import Settings  # noqa: E402
+from estimator.simulate.simulation import T0_NS  # noqa: E402
+
+PHYSFUSE = [sys.executable, "-m", "estimator.cli"]
+MENAGERIE = {
+    "go2": ["--model", "physics/models/menagerie/go2.xml", "--excitation", "0.1"],
+    "h1": ["--model", "physics/models/menagerie/h1.xml", "--excitation", "0.05"],
+}
+STRONG_N, LONG_S = 30.0, 0.1
+
+
+def simulated(name: str, seed: int, duration: float, work: Path) -> tuple[Path, Path]:
+    log, config = work / f"{name}_{seed}.mcap", work / f"{name}_{seed}.toml"
+    source = MENAGERIE.get(name, [name])
+    subprocess.run(
+        [
+            *PHYSFUSE,
+            "simulate",
+            *source,
+            "--condition",
+            "disturbances",
+            "--seed",
+            str(seed),
+            "--duration",
+            str(duration),
+            "--out",
+            str(log),
+            "--config-out",
+            str(config),
+        ],
+        cwd=ROOT,
+        check=True,
+        capture_output=True,
+    )
+    return log, config
+
+
+def run(name: str, seed: int, duration: float, work: Path) -> dict:
+    log_path, config_path = simulated(name, seed, duration, work)
+    config = load_config(config_path)
+    log = read_log(log_path, config)
+    settings = Settings.from_config(config)
+    start = time.perf_counter()
+    est, _ = estimate(config, log.measurements, settings)
+    estimated = time.perf_counter()
+    diagnosis = diagnose(config, log.measurements, est, settings)
+    diagnosed = time.perf_counter()
+    result = score(diagnosis.events, true_events(log_path), T0_NS, duration)
+    return {
+        "scenario": name,
+        "seed": seed,
+        "minutes": result.minutes,
+        "estimate_s": estimated - start,
+        "diagnose_s": diagnosed - estimated,
+        "events": [_matched(m) for m in result.matched],
+        "false_alarms": [
+            {
+                "kind": e.kind,
+                "start_s": (e.start_ns - T0_NS) / 1e9,
+                "target": e.target,
+                "component": e.component,
+                "size": e.magnitude,
+                "score": e.score,
+            }
+            for e in result.false_alarms
+        ],
+    }
+
+
+def _matched(m: Matched) -> dict:
+    t = m.truth
+    force = float(np.linalg.norm(t["force_n"])) if "force_n" in t else None
+    out = {
+        "kind": t["kind"],
+        "start_s": t["start_s"],
+        "end_s": t["end_s"],
+        "target": t.get("body", t.get("stream")),
+        "force_n": force,
+        "found": m.found,
+        "isolated": m.isolated,
+        "force_error": None if np.isnan(m.force_error) else m.force_error,
+        "delay_s": None if np.isnan(m.delay_s) else m.delay_s,
+    }
+    if m.detection is not None:
+        out["detected"] = {"body": m.detection.target, "force_n": m.detection.magnitude}
+    return out
+
+
+def summarize(runs: list[dict]) -> list[dict]:
+    rows = []
+    for name in dict.fromkeys(r["scenario"] for r in runs):
+        mine = [r for r in runs if r["scenario"] == name]
+        minutes = sum(r["minutes"] for r in mine)
+        alarms = {
+            kind: sum(a["kind"] == kind for r in mine for a in r["false_alarms"])
+            for kind in ("unmodeled contact", "sensor fault")
+        }
+        events = [e for r in mine for e in r["events"]]
+        pushes = [e for e in events if e["kind"] == "push"]
+        strong = [
+            e
+            for e in pushes
+            if e["force_n"] >= STRONG_N and e["end_s"] - e["start_s"] >= LONG_S - 1e-9
+        ]
+        for label, group in (("push ≥30 N ≥0.1 s", strong), ("push, all", pushes)):
+            rows.append(_row(name, label, group, alarms["unmodeled contact"], minutes))
+        for kind in ("imu bias step", "encoder offset"):
+            group = [e for e in events if e["kind"] == kind]
+            rows.append(_row(name, kind, group, alarms["sensor fault"], minutes))
+    return rows
+
+
+def _row(name: str, label: str, group: list[dict], alarms: int | None, minutes: float) -> dict:
+    found = [e for e in group if e["found"]]
+    errors = [e["force_error"] for e in found if e["force_error"] is not None]
+    delays = [e["delay_s"] for e in found]
+    return {
+        "scenario": name,
+        "events": label,
+        "count": len(group),
+        "recall": len(found) / len(group) if group else None,
+        "isolation": sum(e["isolated"] for e in found) / len(found) if found else None,
+        "force_error_median": float(np.median(errors)) if errors else None,
+        "force_error_p90": float(np.quantile(errors, 0.9)) if errors else None,
+        "delay_p50_ms": 1e3 * float(np.median(delays)) if delays else None,
+        "false_alarms_per_min": alarms / minutes if alarms is not None and minutes else None,
+    }
+
+
+def _cell(v: object, fmt: str) -> str:
+    return "—" if v is None else format(v, fmt)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument(
+        "--scenarios", nargs="+", default=["humanoid_push", "quadruped_trot", "go2", "h1"]
+    )
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--duration", type=float, default=10.0)
+    parser.add_argument("--out", type=Path, default=ROOT / "docs" / "results" / "diagnostics")
+    args = parser.parse_args()
+    runs = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.scenarios:
+            for seed in args.seeds:
+                runs.append(run(name, seed, args.duration, Path(tmp)))
+                r = runs[-1]
+                found = sum(e["found"] for e in r["events"])
+                print(
+                    f"{name} seed {seed}: {found}/{len(r['events'])} events found, "
+                    f"{len(r['false_alarms'])} false alarms "
+                    f"(estimate {r['estimate_s']:.0f} s, diagnose {r['diagnose_s']:.1f} s)",
+                    file=sys.stderr,
+                )
+    rows = summarize(runs)
+    header = (
+        "scenario",
+        "events",
+        "n",
+        "recall",
+        "isolation",
+        "|F| err p50",
+        "p90",
+        "delay p50 ms",
+        "false/min",
+    )
+    print(" | ".join(header))
+    for r in rows:
+        print(
+            " | ".join(
+                [
+                    r["scenario"],
+                    r["events"],
+                    str(r["count"]),
+                    _cell(r["recall"], ".0%"),
+                    _cell(r["isolation"], ".0%"),
+                    _cell(r["force_error_median"], ".0%"),
+                    _cell(r["force_error_p90"], ".0%"),
+                    _cell(r["delay_p50_ms"], ".0f"),
+                    _cell(r["false_alarms_per_min"], ".2f"),
+                ]
+            )
+        )
+    args.out.mkdir(parents=True, exist_ok=True)
+    report = {
+        "machine": {"platform": platform.platform(), "python": platform.python_version()},
+        "seeds": args.seeds,
+        "duration_s": args.duration,
+        "rows": rows,
+        "runs": runs,
+    }
+    (args.out / "diagnostics.json").write_text(json.dumps(report, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

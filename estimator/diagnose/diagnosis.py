@@ -1,0 +1,62 @@
+"""One log's diagnosis: its estimate's physics residual through `unmodeled` and `detect`."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+
+from estimator.config import Config
+from estimator.diagnose.detect import JOIN_S, Detection, DetectorSettings, Event, detect
+from estimator.diagnose.sensor_faults import ONE_FAULT_S, sensor_faults
+from estimator.diagnose.unmodeled import UnmodeledForces, unmodeled_forces
+from estimator.estimate import Estimate
+from estimator.io.logs.measurements import Measurement
+from estimator.problem import build_problem, model_with_sensors
+from estimator.settings import Settings
+from physics.model import weight
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """forces, detection: the unmodeled-contact stages; events: every event in time order,
+    the unmodeled contacts a sensor fault explains marked `explained_by` it."""
+
+    forces: UnmodeledForces
+    detection: Detection
+    events: list[Event]
+
+
+def diagnose(
+    config: Config,
+    measurements: Mapping[str, Measurement],
+    est: Estimate,
+    settings: Settings,
+    detector: DetectorSettings | None = None,
+) -> Diagnosis:
+    """Events in an estimate of the log `measurements` (made with `settings`): the physics
+    residual's σ and the contact-force prior σ_f (`contact_force_std` × the robot's weight)
+    are the estimator's."""
+    compiled = model_with_sensors(config)
+    problem = build_problem(config, measurements, settings, est.t_ns, compiled)
+    model = problem.model
+    forces = unmodeled_forces(
+        model, est, problem.known_sigma, settings.contact_force_std * weight(model)
+    )
+    detection = detect(forces, detector)
+    faults = sensor_faults(est, detector)
+    return Diagnosis(forces, detection, explained(detection.events, faults))
+
+
+def explained(contacts: list[Event], faults: list[Event]) -> list[Event]:
+    """All events in time order; an unmodeled contact that starts within `ONE_FAULT_S` after
+    (or `JOIN_S` before) a sensor fault explained by it: the estimate took the faulty reading
+    in, and its physics does not add up there."""
+    out = list(faults)
+    causes = [f for f in faults if not f.explained_by]
+    for event in contacts:
+        for f in causes:
+            if -JOIN_S * 1e9 <= event.start_ns - f.start_ns <= ONE_FAULT_S * 1e9:
+                event = replace(event, explained_by=f"{f.target} {f.component}")
+                break
+        out.append(event)
+    return sorted(out, key=lambda e: e.start_ns)

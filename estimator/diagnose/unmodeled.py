@@ -1,0 +1,134 @@
+"""The unmodeled force on each body, knot by knot, from the physics residual of an estimate.
+
+At knot k the analytic inverse returns u_k (eq. 12) with the model's contact forces f at the
+estimated motion; the known actuation is u_known. A force F on body b's centre of mass that the
+model does not have appears in the residual as
+
+    r_k = u_k − u_known_k = J_bᵀ F + J_cᵀ Δf + noise
+
+J_b (3, nv): the translational Jacobian of b's centre of mass; J_c: the contact Jacobians
+(normal, tangents) of the knot's contacts and near-contacts (geoms within `contact_margin`);
+Δf: how far the model's contact forces are off, which soft contacts leave uncertain (a foot's
+millimetre of slide buys newtons of friction), given a prior Δf ~ N(0, σ_f²). Whitened by
+the physics σ (W = diag(1/σ) on the dofs with a known force) and with Δf marginalized, the
+noise covariance is S = I + σ_f² A_c A_cᵀ, A_c = W J_cᵀ, and F's information and gradient
+at the knot are
+
+    I_kb = A_bᵀ S⁻¹ A_b,   g_kb = A_bᵀ S⁻¹ W r_k,   A_b = W J_bᵀ
+
+so that over any set of knots the constant force that best explains the residual is
+F̂ = (Σ I)⁻¹ Σ g, with the likelihood-ratio statistic χ² = Σgᵀ (Σ I)⁻¹ Σg (`detect`).
+Without the contact term a push on a standing robot's trunk reads as a tenth of itself: the
+estimate's feet take up the rest as friction.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from estimator.contact_forces import contact_jacobian
+from estimator.estimate import Estimate
+from physics.result import Contacts
+
+CONTACT_MARGIN_M = 0.01
+
+
+@dataclass(frozen=True)
+class UnmodeledForces:
+    """Per knot and body, what the physics residual says about an unmodeled force.
+
+    t_ns:   (T,) knot times
+    bodies: (B,) names of the candidate bodies (every moving body)
+    body_ids: (B,) their MuJoCo ids
+    info:   (T, B, 3, 3) I_kb (module docstring), 0 where the knot has no physics residual
+    grad:   (T, B, 3) g_kb
+    chi2:   (T,) the knot's whitened residual rᵀW S⁻¹ W r (NaN: none): how unusual it is
+    """
+
+    t_ns: np.ndarray
+    bodies: tuple[str, ...]
+    body_ids: np.ndarray
+    info: np.ndarray
+    grad: np.ndarray
+    chi2: np.ndarray
+
+    @property
+    def h(self) -> float:
+        return float(np.median(np.diff(self.t_ns))) / 1e9
+
+    def force(self, k: int, b: int) -> np.ndarray:
+        """F̂ at a single knot (least squares; NaN where the knot has no information)."""
+        try:
+            return np.linalg.solve(self.info[k, b], self.grad[k, b])
+        except np.linalg.LinAlgError:
+            return np.full(3, np.nan)
+
+
+def unmodeled_forces(
+    model: mujoco.MjModel,
+    est: Estimate,
+    sigma: np.ndarray,
+    contact_force_std: float,
+    contact_margin: float = CONTACT_MARGIN_M,
+) -> UnmodeledForces:
+    """The `UnmodeledForces` of an estimate.
+
+    model: the estimate's model (kinematics only); sigma: (T, nv) the physics residual's σ on
+    each dof (inf or NaN where no force is known: those rows drop out); contact_force_std:
+    σ_f [N], the prior on how far a contact force of the model may be off; contact_margin [m]:
+    geoms this close count as touching (a foot lands a knot earlier than its estimate does).
+    """
+    T, nv = est.T, model.nv
+    model = copy.deepcopy(model)
+    model.geom_margin += contact_margin
+    bodies = np.array(
+        [b for b in range(1, model.nbody) if _moves(model, b) and model.body_mass[b] > 0]
+    )
+    info = np.zeros((T, len(bodies), 3, 3))
+    grad = np.zeros((T, len(bodies), 3))
+    chi2 = np.full(T, np.nan)
+    residual = est.qfrc_inverse - est.qfrc_known
+    data = mujoco.MjData(model)
+    jacp = np.zeros((3, nv))
+    J_b = np.zeros((len(bodies), nv, 3))
+    for k in range(T):
+        known = np.isfinite(residual[k]) & np.isfinite(sigma[k]) & (sigma[k] > 0)
+        if not known.any():
+            continue
+        w = 1.0 / sigma[k, known]
+        data.qpos[:] = est.qpos[k]
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_comPos(model, data)
+        mujoco.mj_collision(model, data)
+        contacts = Contacts.from_data(data)
+        rows = [
+            contact_jacobian(model, data, contacts, i)[: min(int(contacts.dim[i]), 3)]
+            for i in range(len(contacts.dim))
+        ]
+        A_c = (np.vstack(rows).T[known] * w[:, None]) if rows else np.zeros((known.sum(), 0))
+        S = np.eye(len(w)) + contact_force_std**2 * (A_c @ A_c.T)
+        for i, b in enumerate(bodies):
+            mujoco.mj_jac(model, data, jacp, None, data.xipos[b], b)
+            J_b[i] = jacp.T
+        A_b = J_b[:, known] * w[None, :, None]  # (B, m, 3)
+        S_inv_A = np.linalg.solve(S, A_b.transpose(1, 0, 2).reshape(len(w), -1))
+        S_inv_A = S_inv_A.reshape(len(w), len(bodies), 3).transpose(1, 0, 2)
+        info[k] = np.einsum("bmi,bmj->bij", A_b, S_inv_A)
+        r_w = residual[k, known] * w
+        grad[k] = np.einsum("bmi,m->bi", S_inv_A, r_w)
+        chi2[k] = r_w @ np.linalg.solve(S, r_w)
+    names = tuple(model.body(int(b)).name or f"body {b}" for b in bodies)
+    return UnmodeledForces(est.t_ns, names, bodies, info, grad, chi2)
+
+
+def _moves(model: mujoco.MjModel, body: int) -> bool:
+    """Whether a body or one it is welded to has dofs."""
+    while body:
+        if model.body_dofnum[body]:
+            return True
+        body = int(model.body_parentid[body])
+    return False
