@@ -25,6 +25,10 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
         "estimator.cli.evaluate",
         "errors of an estimate against ground truth, or of a held-out sensor's prediction",
     ),
+    "diagnose": (
+        "estimator.cli.diagnose",
+        "unmodeled contacts (pushes, collisions) and sensor faults in a robot log",
+    ),
     "stream": (
         "estimator.cli.stream",
         "estimate a live robot as its messages arrive (fixed-lag smoothing)",

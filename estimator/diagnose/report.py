@@ -1,0 +1,142 @@
+"""A diagnosis as the user reads it: events.json, the terminal table, and MCAP topics.
+
+/diagnostics                           diagnostic_msgs/msg/DiagnosticArray, one message per
+                                       event at its start: status name "physfuse/<kind>",
+                                       hardware_id the body or stream, level WARN (ERROR
+                                       for a sensor fault), key/values: start_s, end_s,
+                                       force_n (x y z) ± σ, component, score, explained_by
+/diagnostics/unmodeled_force/<body>    geometry_msgs/msg/WrenchStamped per knot: the force
+                                       on the body's centre of mass (world frame) that
+                                       would explain the physics residual alone (the
+                                       detector's windowed fit), frame_id "world"
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from estimator.diagnose.detect import Event
+from estimator.diagnose.diagnosis import Diagnosis
+from estimator.io.logs import ros2_types
+from estimator.io.mcap_writer import MessageSink, header, vector3
+
+DIAGNOSTICS = "/diagnostics"
+UNMODELED_FORCE = "/diagnostics/unmodeled_force/"
+DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+WARN, ERROR = 1, 2  # diagnostic_msgs/DiagnosticStatus levels
+
+
+def event_dict(e: Event, t0_ns: int) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "kind": e.kind,
+        "start_s": (e.start_ns - t0_ns) / 1e9,
+        "end_s": (e.end_ns - t0_ns) / 1e9,
+        "detected_s": (e.detected_ns - t0_ns) / 1e9,
+        "target": e.target,
+        "score": e.score,
+    }
+    if e.kind == "unmodeled contact":
+        out["force_n"] = e.force.tolist()
+        out["force_std_n"] = np.sqrt(np.diag(e.force_cov)).tolist()
+        out["magnitude_n"] = e.magnitude
+        out["magnitude_std_n"] = e.magnitude_std
+        out["candidates"] = dict(sorted(e.candidates.items(), key=lambda kv: -kv[1])[:3])
+    else:
+        out["component"] = e.component
+        out["step_sigma"] = float(e.force[0])
+    if e.explained_by:
+        out["explained_by"] = e.explained_by
+    return out
+
+
+def events_json(diagnosis: Diagnosis, t0_ns: int) -> dict[str, Any]:
+    det = diagnosis.detection
+    return {
+        "t0_ns": int(t0_ns),
+        "settings": {
+            "window_s": det.settings.window_s,
+            "false_alarms_per_min": det.settings.false_alarms_per_min,
+        },
+        "threshold_chi2": det.threshold,
+        "bodies": list(diagnosis.forces.bodies),
+        "body_force_std_n": {
+            b: np.sqrt(np.diag(c)).tolist()
+            for b, c in zip(diagnosis.forces.bodies, det.cov, strict=True)
+        },
+        "body_force_offset_n": {
+            b: m.tolist() for b, m in zip(diagnosis.forces.bodies, det.mean, strict=True)
+        },
+        "events": [event_dict(e, t0_ns) for e in diagnosis.events],
+    }
+
+
+def table(diagnosis: Diagnosis, t0_ns: int) -> str:
+    """The terminal table: one line per event, consequences indented under their cause."""
+    if not diagnosis.events:
+        return "no events"
+    lines = [f"{'start s':>8} {'end s':>7}  {'kind':<18} {'where':<34} {'size':<24} score"]
+    for e in diagnosis.events:
+        if e.kind == "unmodeled contact":
+            size = f"{e.magnitude:.1f} ± {e.magnitude_std:.1f} N"
+            where = e.target
+        else:
+            size = f"step {e.force[0]:+.1f}σ"
+            where = f"{e.target} {e.component}"
+        kind = e.kind if not e.explained_by else f"  ({e.kind})"
+        line = (
+            f"{(e.start_ns - t0_ns) / 1e9:8.3f} {(e.end_ns - t0_ns) / 1e9:7.3f}  "
+            f"{kind:<18} {where:<34} {size:<24} {e.score:.1f}"
+        )
+        if e.explained_by:
+            line += f"  ← {e.explained_by}"
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def write_mcap(sink: MessageSink, diagnosis: Diagnosis) -> None:
+    """The /diagnostics topics (module docstring) into an MCAP sink."""
+    forces, det = diagnosis.forces, diagnosis.detection
+    for e in diagnosis.events:
+        values = event_dict(e, int(forces.t_ns[0]))
+        status = {
+            "level": ERROR if e.kind == "sensor fault" else WARN,
+            "name": f"physfuse/{e.kind.replace(' ', '_')}",
+            "message": _message(e),
+            "hardware_id": e.target,
+            "values": [{"key": k, "value": _text(v)} for k, v in values.items()],
+        }
+        sink.write(
+            DIAGNOSTICS,
+            DIAGNOSTIC_ARRAY,
+            {"header": header(e.start_ns), "status": [status]},
+            e.start_ns,
+        )
+    for b, body in enumerate(forces.bodies):
+        topic = UNMODELED_FORCE + body
+        for k in np.flatnonzero(np.isfinite(det.force[:, b]).all(axis=1)):
+            t = int(forces.t_ns[k])
+            fields = {
+                "header": header(t, "world"),
+                "wrench": {"force": vector3(det.force[k, b]), "torque": vector3(np.zeros(3))},
+            }
+            sink.write(topic, ros2_types.WRENCH_STAMPED, fields, t)
+
+
+def _message(e: Event) -> str:
+    if e.kind == "unmodeled contact":
+        text = f"{e.magnitude:.0f} N on {e.target}"
+    else:
+        text = f"{e.target} {e.component} stepped {e.force[0]:+.1f} sigma"
+    return text + (f" (explained by {e.explained_by})" if e.explained_by else "")
+
+
+def _text(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    if isinstance(v, list):
+        return " ".join(_text(x) for x in v)
+    if isinstance(v, dict):
+        return ", ".join(f"{k} {_text(x)}" for k, x in v.items())
+    return str(v)
