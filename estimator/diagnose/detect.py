@@ -104,6 +104,8 @@ def detect(forces: UnmodeledForces, settings: DetectorSettings | None = None) ->
             mean[b], cov[b] = robust_mean_cov(force[ok, b])
             diff = force[ok, b] - mean[b]
             d2[ok, b] = np.einsum("ki,ij,kj->k", diff, np.linalg.inv(cov[b]), diff)
+    # the log's first and last window: the smoother saw them from one side only
+    d2[: L + 1], d2[max(0, T - L - 1) :] = np.nan, np.nan
     p = settings.false_alarms_per_min * settings.window_s / 60.0 / max(B, 1)
     threshold = float(chi2.isf(p, 3))
     d2 = d2 / local_scale(d2, forces.h, settings.causal)[:, None]

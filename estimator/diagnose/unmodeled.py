@@ -32,9 +32,11 @@ import numpy as np
 
 from estimator.contact_forces import contact_jacobian
 from estimator.estimate import Estimate
+from physics.model import weight
 from physics.result import Contacts
 
 CONTACT_MARGIN_M = 0.01
+FORCE_PRIOR = 10.0  # × the robot's weight
 
 
 @dataclass(frozen=True)
@@ -74,14 +76,20 @@ def unmodeled_forces(
     sigma: np.ndarray,
     contact_force_std: float,
     contact_margin: float = CONTACT_MARGIN_M,
+    force_prior: float | None = None,
 ) -> UnmodeledForces:
     """The `UnmodeledForces` of an estimate.
 
     model: the estimate's model (kinematics only); sigma: (T, nv) the physics residual's σ on
     each dof (inf or NaN where no force is known: those rows drop out); contact_force_std:
     σ_f [N], the prior on how far a contact force of the model may be off; contact_margin [m]:
-    geoms this close count as touching (a foot lands a knot earlier than its estimate does).
+    geoms this close count as touching (a foot lands a knot earlier than its estimate does);
+    force_prior [N]: F ~ N(0, force_prior²) at each knot (default `FORCE_PRIOR` × the
+    robot's weight): what the residual cannot see of a force (a hinge's axial direction) is
+    0, not arbitrary.
     """
+    if force_prior is None:
+        force_prior = FORCE_PRIOR * weight(model)
     T, nv = est.T, model.nv
     model = copy.deepcopy(model)
     model.geom_margin += contact_margin
@@ -117,7 +125,7 @@ def unmodeled_forces(
         A_b = J_b[:, known] * w[None, :, None]  # (B, m, 3)
         S_inv_A = np.linalg.solve(S, A_b.transpose(1, 0, 2).reshape(len(w), -1))
         S_inv_A = S_inv_A.reshape(len(w), len(bodies), 3).transpose(1, 0, 2)
-        info[k] = np.einsum("bmi,bmj->bij", A_b, S_inv_A)
+        info[k] = np.einsum("bmi,bmj->bij", A_b, S_inv_A) + np.eye(3) / force_prior**2
         r_w = residual[k, known] * w
         grad[k] = np.einsum("bmi,m->bi", S_inv_A, r_w)
         chi2[k] = r_w @ np.linalg.solve(S, r_w)
