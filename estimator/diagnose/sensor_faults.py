@@ -94,7 +94,8 @@ def _steps(
         cusum = np.cumsum(filled[lo : e + 1] - centre)
         line = cusum[-1] * np.arange(1, len(cusum) + 1) / len(cusum)
         onset = lo + int(np.argmax(np.abs(cusum - line)))
-        size = float(np.nanmean(z[onset : e + 1]) - centre) * scale
+        after = z[onset : e + 1][np.isfinite(z[onset : e + 1])]
+        size = (float(after.mean()) - centre) * scale if after.size else float("nan")
         peak = float(np.nanmax(np.abs(standard[s : e + 1])))
         events.append(_event(est, stream, label, onset, e, s, size, peak / threshold))
     return events
