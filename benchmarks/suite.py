@@ -752,7 +752,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     every = [*SCENARIOS, *PUBLIC_ROBOTS]
     parser.add_argument("--scenarios", nargs="+", default=every, choices=every)
-    parser.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=CONDITIONS)
+    # disturbances is the diagnostics' condition (benchmarks/diagnostics.py), not the estimator's
+    estimator_conditions = [c for c in CONDITIONS if c != "disturbances"]
+    parser.add_argument("--conditions", nargs="+", default=estimator_conditions, choices=CONDITIONS)
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--duration", type=float, default=DURATION_S, help="log length, s")
     parser.add_argument("--seed", type=int, default=0)
