@@ -195,7 +195,7 @@ def main() -> None:
         "n",
         "recall",
         "isolation",
-        "|F| err p50",
+        "‖F‖ err p50",
         "p90",
         "delay p50 ms",
         "false/min",
