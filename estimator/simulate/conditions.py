@@ -41,7 +41,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
-import mujoco
 import numpy as np
 
 from estimator.io.mcap_writer import Message
@@ -59,6 +58,7 @@ from estimator.simulate.sensors import (
     Sensor,
     SensorOutput,
     Trajectory,
+    Wrapping,
 )
 from physics.model import load_model
 
@@ -80,7 +80,7 @@ MISMATCH = SignedMismatch(
 
 
 @dataclass(frozen=True)
-class Occluded:
+class Occluded(Wrapping):
     """A mocap sensor whose `targets` (pose labels, or marker sites of one body) all vanish
     together for stretches of `duration_s` (min, max) [s], uniform.
 
@@ -94,16 +94,6 @@ class Occluded:
     duration_s: tuple[float, float] = (0.2, 1.0)
     every_s: float = 1.25
     margin_s: float = 0.25
-
-    @property
-    def name(self) -> str:
-        return self.sensor.name
-
-    def topics(self) -> dict[str, str]:
-        return self.sensor.topics()
-
-    def streams(self, model: mujoco.MjModel) -> dict[str, dict[str, Any]]:
-        return self.sensor.streams(model)
 
     def settings(self) -> dict[str, Any]:
         occlusion = {

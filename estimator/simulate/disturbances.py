@@ -40,7 +40,7 @@ import numpy as np
 
 from estimator.simulate.controllers import Push
 from estimator.simulate.errors import SimulationError
-from estimator.simulate.sensors import NS, Encoders, Imu, SensorOutput, Trajectory
+from estimator.simulate.sensors import NS, Encoders, Imu, SensorOutput, Trajectory, Wrapping
 
 PUSH_FORCE_N = (20.0, 100.0)
 PUSH_S = (0.05, 0.3)
@@ -97,20 +97,10 @@ def random_body_pushes(
 
 
 @dataclass(frozen=True)
-class ImuBiasStep:
+class ImuBiasStep(Wrapping):
     """An IMU whose gyro or accelerometer bias on one axis steps at a random time."""
 
     sensor: Imu
-
-    @property
-    def name(self) -> str:
-        return self.sensor.name
-
-    def topics(self) -> dict[str, str]:
-        return self.sensor.topics()
-
-    def streams(self, model: mujoco.MjModel) -> dict[str, dict[str, Any]]:
-        return self.sensor.streams(model)
 
     def settings(self) -> dict[str, Any]:
         return self.sensor.settings() | {"fault": "bias step"}
@@ -143,20 +133,10 @@ class ImuBiasStep:
 
 
 @dataclass(frozen=True)
-class EncoderJump:
+class EncoderJump(Wrapping):
     """Joint encoders of which one joint's reading jumps by an offset at a random time."""
 
     sensor: Encoders
-
-    @property
-    def name(self) -> str:
-        return self.sensor.name
-
-    def topics(self) -> dict[str, str]:
-        return self.sensor.topics()
-
-    def streams(self, model: mujoco.MjModel) -> dict[str, dict[str, Any]]:
-        return self.sensor.streams(model)
 
     def settings(self) -> dict[str, Any]:
         return self.sensor.settings() | {"fault": "offset jump"}

@@ -394,6 +394,23 @@ def _occluded(times_s: np.ndarray, intervals: np.ndarray) -> np.ndarray:
     return hidden
 
 
+class Wrapping:
+    """A condition's wrapper of a sensor (an occlusion, a fault): the wrapped sensor's name,
+    topics and config streams; the wrapper changes what it samples."""
+
+    sensor: Sensor
+
+    @property
+    def name(self) -> str:
+        return self.sensor.name
+
+    def topics(self) -> dict[str, str]:
+        return self.sensor.topics()
+
+    def streams(self, model: mujoco.MjModel) -> dict[str, dict[str, Any]]:
+        return self.sensor.streams(model)
+
+
 @dataclass(frozen=True)
 class MocapPoses:
     """Rigid-body poses from motion capture, one PoseStamped topic per body (vrpn_mocap style).
