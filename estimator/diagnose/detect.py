@@ -1,21 +1,23 @@
 """Unmodeled contacts: detected, isolated to a body and identified as a force, from
 `UnmodeledForces`.
 
-1. Windowed fit: over each window of L knots (`window_s`), the constant force on body b that
-   best explains the residual, F̂_kb = (Σ I)⁻¹ Σ g (`unmodeled`).
+1. Windowed fit: per body, the force each knot alone asks for (I_kb⁻¹ g_kb, `unmodeled`),
+   its component-wise median over each window of L knots (`window_s`): F̂_kb.
 2. Calibration from the log's own residuals: per body, a robust mean μ_b and covariance C_b of
    F̂_kb over the log (the trimmed covariance of the 90% of windows nearest the median,
    corrected for the trimming, iterated): events are rare, so they do not set the scale.
-   μ_b is the force the model is off by all along (a mass or a mounting: `model error`), not
-   an event.
-3. Detection: d²_kb = (F̂_kb − μ_b)ᵀ C_b⁻¹ (F̂_kb − μ_b) is χ²(3) where nothing happens; the
-   alarm threshold is its quantile for the target false-alarm rate, spread over the
-   windows per minute and the bodies (Bonferroni): p = rate · window_s / 60 s / B.
-4. A run of alarmed windows is one event. Isolation: the body whose force explains the
-   residual over the run best (the largest likelihood ratio Σgᵀ(ΣI)⁻¹Σg). Interval: within
-   the run widened by half a window, the knots [a, b] that maximize (Σ uᵀg)² / Σ uᵀI u along
-   the force's direction u (a constant force that starts and stops: the likelihood ratio of
-   the interval). Identification: F̂ over [a, b], its covariance C_b scaled by L / (b − a + 1).
+   μ_b is the force the model is off by all along (a mass or a mounting), not an event.
+3. Detection: d²_kb = (F̂_kb − μ_b)ᵀ C_b⁻¹ (F̂_kb − μ_b) is χ²(3) where nothing happens,
+   divided by the log's local noise level (`local_scale`, a CFAR test); the alarm threshold
+   is χ²(3)'s quantile for the target false-alarm rate, spread over the windows per minute
+   and the bodies (Bonferroni): p = rate · window_s / 60 s / B. The log's first and last
+   window are not tested.
+4. Alarms less than `JOIN_S` apart are one event. Isolation: the body whose constant force
+   explains the residual over the event best (`robust_fit`'s likelihood ratio). Interval:
+   within the alarms widened by half a window, the knots [a, b] that maximize
+   (Σ uᵀg)² / Σ uᵀI u along the force's direction u (a constant force that starts and
+   stops: the likelihood ratio of the interval). Identification: `robust_fit` over [a, b],
+   its covariance C_b scaled by L / (b − a + 1).
 """
 
 from __future__ import annotations
@@ -230,16 +232,6 @@ def best_interval(info: np.ndarray, grad: np.ndarray, force: np.ndarray) -> tupl
         if ratio[z] > best and (s[a + 1 + z] - s[a]) > 0:
             best, out = float(ratio[z]), (a, a + z)
     return out
-
-
-def windowed(x: np.ndarray, L: int, causal: bool) -> np.ndarray:
-    """Sums of x over windows of L knots along axis 0: ending at each knot (causal) or
-    centred on it; a window past either end sums what exists."""
-    c = np.concatenate([np.zeros((1, *x.shape[1:])), np.cumsum(x, axis=0)])
-    T = len(x)
-    end = np.arange(T) + (0 if causal else L // 2)
-    start = end - L + 1
-    return c[np.clip(end + 1, 0, T)] - c[np.clip(start, 0, T)]
 
 
 def runs(mask: np.ndarray, gap: int = 0) -> list[tuple[int, int]]:

@@ -48,7 +48,6 @@ class UnmodeledForces:
     body_ids: (B,) their MuJoCo ids
     info:   (T, B, 3, 3) I_kb (module docstring), 0 where the knot has no physics residual
     grad:   (T, B, 3) g_kb
-    chi2:   (T,) the knot's whitened residual rᵀW S⁻¹ W r (NaN: none): how unusual it is
     """
 
     t_ns: np.ndarray
@@ -56,18 +55,10 @@ class UnmodeledForces:
     body_ids: np.ndarray
     info: np.ndarray
     grad: np.ndarray
-    chi2: np.ndarray
 
     @property
     def h(self) -> float:
         return float(np.median(np.diff(self.t_ns))) / 1e9
-
-    def force(self, k: int, b: int) -> np.ndarray:
-        """F̂ at a single knot (least squares; NaN where the knot has no information)."""
-        try:
-            return np.linalg.solve(self.info[k, b], self.grad[k, b])
-        except np.linalg.LinAlgError:
-            return np.full(3, np.nan)
 
 
 def unmodeled_forces(
@@ -98,7 +89,6 @@ def unmodeled_forces(
     )
     info = np.zeros((T, len(bodies), 3, 3))
     grad = np.zeros((T, len(bodies), 3))
-    chi2 = np.full(T, np.nan)
     residual = est.qfrc_inverse - est.qfrc_known
     data = mujoco.MjData(model)
     jacp = np.zeros((3, nv))
@@ -126,11 +116,9 @@ def unmodeled_forces(
         S_inv_A = np.linalg.solve(S, A_b.transpose(1, 0, 2).reshape(len(w), -1))
         S_inv_A = S_inv_A.reshape(len(w), len(bodies), 3).transpose(1, 0, 2)
         info[k] = np.einsum("bmi,bmj->bij", A_b, S_inv_A) + np.eye(3) / force_prior**2
-        r_w = residual[k, known] * w
-        grad[k] = np.einsum("bmi,m->bi", S_inv_A, r_w)
-        chi2[k] = r_w @ np.linalg.solve(S, r_w)
+        grad[k] = np.einsum("bmi,m->bi", S_inv_A, residual[k, known] * w)
     names = tuple(model.body(int(b)).name or f"body {b}" for b in bodies)
-    return UnmodeledForces(est.t_ns, names, bodies, info, grad, chi2)
+    return UnmodeledForces(est.t_ns, names, bodies, info, grad)
 
 
 def _moves(model: mujoco.MjModel, body: int) -> bool:
