@@ -12,8 +12,9 @@
    is χ²(3)'s quantile for the target false-alarm rate, spread over the windows per minute
    and the bodies (Bonferroni): p = rate · window_s / 60 s / B. The log's first and last
    window are not tested.
-4. Alarms less than `JOIN_S` apart are one event. Isolation: the body whose constant force
-   explains the residual over the event best (`robust_fit`'s likelihood ratio). Interval:
+4. Alarms less than `JOIN_S` apart are one event if they last a window or more. Isolation:
+   the body whose constant force explains the residual over the event best (`robust_fit`'s
+   likelihood ratio). Interval:
    within the alarms widened by half a window, the knots [a, b] that maximize
    (Σ uᵀg)² / Σ uᵀI u along the force's direction u (a constant force that starts and
    stops: the likelihood ratio of the interval). Identification: `robust_fit` over [a, b],
@@ -113,7 +114,10 @@ def detect(forces: UnmodeledForces, settings: DetectorSettings | None = None) ->
     d2 = d2 / local_scale(d2, forces.h, settings.causal)[:, None]
     detection = Detection(forces, settings, L, force, mean, cov, d2, threshold, [])
     alarm = np.nan_to_num(d2, nan=0.0).max(axis=1) > threshold
-    events = [_event(detection, s, e) for s, e in runs(alarm, gap=max(L, round(JOIN_S / forces.h)))]
+    joined = runs(alarm, gap=max(L, round(JOIN_S / forces.h)))
+    # an event lasts: a push of a window or more keeps a window's median up that long; a
+    # contact made or broken a knot off its estimate moves it for less
+    events = [_event(detection, s, e) for s, e in joined if e - s + 1 >= L]
     return Detection(forces, settings, L, force, mean, cov, d2, threshold, events)
 
 
