@@ -74,6 +74,33 @@ def test_considered_softness_predicts_how_far_a_re_solved_estimate_moves():
     assert predicted[0] == pytest.approx(actual, rel=0.15)
 
 
+def test_considered_softness_through_an_impact_uses_the_secants_to_its_sigma_points():
+    """The humanoid falling onto the floor (knots 1.35–1.85 s of 10 ms), κ × (1 ± 0.1): the
+    window's height re-solved moves by Δ₊ (softer) and hardly at all at κ × 0.9 (κ already at
+    its floor 2h). The considered σ from the secants to κ ± σ comes within a factor 2 of
+    √(½(Δ₊² + Δ₋²)), where the tangent at κ overstates it by more than 2.5×: the impact's
+    force is far from linear in the softness."""
+    step = 0.1
+    problem, solved, softer = _solved_and_moved("humanoid_fall", 0.01, slice(135, 185), step)
+    stiffer_model = copy.deepcopy(problem.model)
+    covariance._scaled_timeconst(stiffer_model, 1.0 - step)
+    stiffer = solve_window(
+        replace(problem, model=stiffer_model), solved.qpos, solved.bias, covariance=False
+    )
+    shifts = [np.mean((m.qpos[:, 2] - solved.qpos[:, 2]) ** 2) for m in (softer, stiffer)]
+    actual = np.sqrt(np.mean(shifts))
+    only_kappa = replace(problem, settings=replace(problem.settings, model_softness_std=step))
+    variance = covariance.consider_variance(only_kappa, solved, ("softness_kappa",))
+    predicted = np.sqrt(variance[0, 2])
+    at = covariance.rows_at(problem, problem.model, solved)
+    _, _, tangent = covariance.parameter_sensitivity(
+        problem, solved, solved.solved_system, "softness_kappa", at
+    )
+    assert actual > 1e-4  # a tenth of a millimetre
+    assert actual / 2 < predicted < actual
+    assert step * np.sqrt(np.mean(tangent[:, 2] ** 2)) > 2.5 * actual
+
+
 def test_a_force_sensor_predicted_through_the_contacts_enters_the_sensitivity():
     """The arm holding its box, κ × 1.02: the box moves by what S_κ predicts from every
     factor's rows (within a factor 1.5 of re-solving the window), where the physics rows

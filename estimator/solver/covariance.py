@@ -65,6 +65,7 @@ def with_covariance(
 
 
 CONSIDER_STEP = 0.01  # relative change of a parameter for its finite difference
+MAX_SPREAD = 0.5  # the sigma points' half-width at most (a scale 1 − σ must stay positive)
 
 
 def _scaled_softness(model: mujoco.MjModel, factor: float) -> None:
@@ -121,17 +122,18 @@ def parameter_sensitivity(
     system: BandedSystem,
     name: str,
     at: list[np.ndarray],
+    step: float = CONSIDER_STEP,
 ) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
     """For one CONSIDERED parameter θ (a relative change): ∂r/∂θ of every factor's rows (one
     (K, m) per block: the physics, and the sensors the model predicts through θ — a
-    force/torque sensor through the contacts), C = Jᵀ ∂r/∂θ by key (T, nz) and the
-    estimate's sensitivity S = −H⁻¹ C (T, nz) with H that of `system`; `at`: the rows at the
-    result's solution (`rows_at`)."""
+    force/torque sensor through the contacts) as the difference quotient over θ → θ + step,
+    C = Jᵀ ∂r/∂θ by key (T, nz) and the estimate's sensitivity S = −H⁻¹ C (T, nz) with H
+    that of `system`; `at`: the rows at the result's solution (`rows_at`)."""
     perturb, _ = CONSIDERED[name]
     model = copy.deepcopy(problem.model)
-    perturb(model, 1.0 + CONSIDER_STEP)
+    perturb(model, 1.0 + step)
     moved = rows_at(problem, model, result)
-    dr = [(r - r0) / CONSIDER_STEP for r, r0 in zip(moved, at, strict=True)]
+    dr = [(r - r0) / step for r, r0 in zip(moved, at, strict=True)]
     C = key_gradient(problem, result.blocks, dr)
     s, ab = system.scaled_band()
     return dr, C, replace(system, g=C).damped_step(s, ab, LAMBDA_MIN)
@@ -146,8 +148,9 @@ def consider_variance(
     (model_softness_std, model_mass_std) — the estimate's sensitivity S_θ = −H⁻¹ Jᵀ ∂r/∂θ
     (H, J of the solved system; ∂r/∂θ of every factor's rows by a finite difference at the
     solution: the physics, and the sensors predicted through θ — a force/torque sensor
-    through the contacts) adds (S_θ σ_θ)², as its mean over the window per dof. A contact
-    softer than modeled lets the robot sit lower: the height's variance grows by that much."""
+    through the contacts; secants to θ ± σ_θ) adds (S_θ σ_θ)², as its mean over the window
+    per dof. A contact softer than modeled lets the robot sit lower: the height's variance
+    grows by that much."""
     system = result.solved_system
     nv = problem.model.nv
     variance = np.zeros((problem.T, nv))
@@ -160,12 +163,20 @@ def consider_variance(
             continue
         if at_solution is None:  # (the linearization may be a step before the solution)
             at_solution = rows_at(problem, problem.model, result)
+        # the two points θ ± σ_θ (the unscented transform's, in one parameter): the
+        # estimate's variance ½ (Δ₊² + Δ₋²) with Δ± = S± σ_θ from the secants to each —
+        # a contact's force is far from linear in its softness (the tangent at θ overstated a
+        # humanoid's fall by 4.6×), and one side may be cut off (κ ≥ 2h)
+        spread = min(sigma, MAX_SPREAD)
         try:
-            _, _, S = parameter_sensitivity(problem, result, system, name, at_solution)
+            S_plus, S_minus = (
+                parameter_sensitivity(problem, result, system, name, at_solution, side)[2]
+                for side in (spread, -spread)
+            )
         except np.linalg.LinAlgError:
             continue
         # its RMS over the window, per dof: a constant parameter moves the estimate by about
         # this much throughout, where the linear sensitivity may pass through zero (a load
         # moving from foot to foot)
-        variance += np.mean((S[:, :nv] * sigma) ** 2, axis=0)
+        variance += np.mean((S_plus[:, :nv] ** 2 + S_minus[:, :nv] ** 2) * (sigma**2 / 2.0), axis=0)
     return variance
