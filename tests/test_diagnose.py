@@ -15,9 +15,11 @@ from estimator.batch import estimate
 from estimator.cli import main
 from estimator.config import load_config
 from estimator.diagnose import Event, diagnose
+from estimator.diagnose.detect import detect
 from estimator.diagnose.diagnosis import explained
 from estimator.diagnose.score import score, true_events
 from estimator.diagnose.sensor_faults import isolated
+from estimator.diagnose.unmodeled import UnmodeledForces
 from estimator.io.logs import read_log
 from estimator.settings import Settings
 from estimator.simulate import simulate
@@ -104,16 +106,47 @@ def test_a_sensor_fault_is_the_best_scoring_row_and_explains_what_follows_it():
     assert contacts[0].explained_by == "imu gyro x" and not contacts[1].explained_by
 
 
+def test_a_pushed_body_is_found_beside_one_the_residual_never_sees():
+    """Two bodies, 4 s at 2 ms of unit-information noise: a 5 N push on the first for 0.2 s
+    is one event on it; the second, moved only through a joint whose force is free (no
+    information, its force 0 at every knot), has nothing to diagnose — not a singular
+    covariance."""
+    rng = np.random.default_rng(1)
+    T = 2000
+    info = np.zeros((T, 2, 3, 3))
+    info[:, 0] = np.eye(3)
+    info[:, 1] = 1e-8 * np.eye(3)  # the force prior alone
+    grad = np.zeros((T, 2, 3))
+    grad[:, 0] = rng.standard_normal((T, 3))
+    grad[1000:1100, 0, 0] += 5.0
+    t_ns = 1_000_000_000 + 2_000_000 * np.arange(T)
+    forces = UnmodeledForces(t_ns, ("pushed", "unseen"), np.array([1, 2]), info, grad)
+    events = detect(forces).events
+    assert [e.target for e in events] == ["pushed"]
+    assert events[0].force[0] == pytest.approx(5.0, rel=0.2)
+    assert abs(events[0].start_ns - t_ns[1000]) <= 20_000_000
+
+
 def test_diagnose_command_writes_events_and_diagnostics_topics(tmp_path, capsys):
+    """The nominal single hinge pressing its tip on the floor: what the physics does not
+    explain is the tip contact's normal force (the simulated robot is not its model) —
+    model errors of that contact, sized, and no unmodeled contact."""
     out = tmp_path / "diag"
     log, config = ROOT / "recordings" / "single_joint.mcap", ROOT / "configs" / "single_joint.toml"
     assert main(["diagnose", str(log), "--config", str(config), "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     report = json.loads((out / "events.json").read_text())
     assert report["bodies"] == ["arm"] and report["settings"]["false_alarms_per_min"] == 1.0
+    kinds = (" unmodeled contact ", " sensor fault ", " model error ")
     assert len(report["events"]) == sum(
-        " unmodeled contact " in line or " sensor fault " in line for line in printed.splitlines()
+        any(k in line for k in kinds) for line in printed.splitlines()
     )
+    contact_errors = [e for e in report["events"] if e["kind"] == "model error"]
+    assert contact_errors and all(e["target"] == "contact arm–floor" for e in contact_errors)
+    assert all(
+        abs(e["normal_force_error_n"]) > 3 * e["normal_force_error_std_n"] for e in contact_errors
+    )
+    assert not [e for e in report["events"] if e["kind"] == "unmodeled contact"]
     with open(out / "diagnostics.mcap", "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         topics = {c.topic for c in reader.get_summary().channels.values()}

@@ -103,7 +103,9 @@ def detect(forces: UnmodeledForces, settings: DetectorSettings | None = None) ->
     for b in range(B):
         force[:, b] = windowed_median(per_knot[:, b], L, settings.causal)
         ok = np.isfinite(force[:, b]).all(axis=1)
-        if ok.sum() > 10:
+        # a body whose force the residual never sees (its dofs' forces all unknown, or moved
+        # only through a joint whose force is free) has none to diagnose
+        if ok.sum() > 10 and np.ptp(force[ok, b], axis=0).any():
             mean[b], cov[b] = robust_mean_cov(force[ok, b])
             diff = force[ok, b] - mean[b]
             d2[ok, b] = np.einsum("ki,ij,kj->k", diff, np.linalg.inv(cov[b]), diff)

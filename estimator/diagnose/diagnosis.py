@@ -6,6 +6,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 from estimator.config import Config
+from estimator.diagnose.contact_model import contact_model_errors
 from estimator.diagnose.detect import JOIN_S, Detection, DetectorSettings, Event, detect
 from estimator.diagnose.sensor_faults import ONE_FAULT_S, sensor_faults
 from estimator.diagnose.unmodeled import UnmodeledForces, unmodeled_forces
@@ -18,8 +19,10 @@ from physics.model import weight
 
 @dataclass(frozen=True)
 class Diagnosis:
-    """forces, detection: the unmodeled-contact stages; events: every event in time order,
-    the unmodeled contacts a sensor fault explains marked `explained_by` it."""
+    """forces, detection: the unmodeled-contact stages; events: every event in time order —
+    the unmodeled contacts, those a modeled contact's normal force explains as its "model
+    error" (`contact_model`), the sensor faults —, the contacts a sensor fault explains
+    marked `explained_by` it."""
 
     forces: UnmodeledForces
     detection: Detection
@@ -39,12 +42,12 @@ def diagnose(
     compiled = model_with_sensors(config)
     problem = build_problem(config, measurements, settings, est.t_ns, compiled)
     model = problem.model
-    forces = unmodeled_forces(
-        model, est, problem.known_sigma, settings.contact_force_std * weight(model)
-    )
+    sigma_f = settings.contact_force_std * weight(model)
+    forces = unmodeled_forces(model, est, problem.known_sigma, sigma_f)
     detection = detect(forces, detector)
+    contacts = contact_model_errors(model, est, problem.known_sigma, sigma_f, detection)
     faults = sensor_faults(est, detector)
-    return Diagnosis(forces, detection, explained(detection.events, faults))
+    return Diagnosis(forces, detection, explained(contacts, faults))
 
 
 def explained(contacts: list[Event], faults: list[Event]) -> list[Event]:

@@ -2,7 +2,7 @@
 
 /diagnostics                           diagnostic_msgs/msg/DiagnosticArray, one message per
                                        event at its start: status name "physfuse/<kind>",
-                                       hardware_id the body or stream, level WARN (ERROR
+                                       hardware_id the body, contact or stream, level WARN (ERROR
                                        for a sensor fault), key/values: start_s, end_s,
                                        force_n (x y z) ± σ, component, score, explained_by
 /diagnostics/unmodeled_force/<body>    geometry_msgs/msg/WrenchStamped per knot: the force
@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from estimator.diagnose.contact_model import MODEL_ERROR
 from estimator.diagnose.detect import Event
 from estimator.diagnose.diagnosis import Diagnosis
 from estimator.io.logs import ros2_types
@@ -43,6 +44,10 @@ def event_dict(e: Event, t0_ns: int) -> dict[str, Any]:
         out["magnitude_n"] = e.magnitude
         out["magnitude_std_n"] = e.magnitude_std
         out["candidates"] = dict(sorted(e.candidates.items(), key=lambda kv: -kv[1])[:3])
+    elif e.kind == MODEL_ERROR:
+        out["component"] = e.component
+        out["normal_force_error_n"] = float(e.force[0])
+        out["normal_force_error_std_n"] = float(np.sqrt(e.force_cov[0, 0]))
     else:
         out["component"] = e.component
         out["step_sigma"] = float(e.force[0])
@@ -80,6 +85,9 @@ def table(diagnosis: Diagnosis, t0_ns: int) -> str:
     for e in diagnosis.events:
         if e.kind == "unmodeled contact":
             size = f"{e.magnitude:.1f} ± {e.magnitude_std:.1f} N"
+            where = e.target
+        elif e.kind == MODEL_ERROR:
+            size = f"normal {e.force[0]:+.1f} ± {np.sqrt(e.force_cov[0, 0]):.1f} N"
             where = e.target
         else:
             size = f"step {e.force[0]:+.1f}σ"
@@ -127,6 +135,8 @@ def write_mcap(sink: MessageSink, diagnosis: Diagnosis) -> None:
 def _message(e: Event) -> str:
     if e.kind == "unmodeled contact":
         text = f"{e.magnitude:.0f} N on {e.target}"
+    elif e.kind == MODEL_ERROR:
+        text = f"{e.target}: the model's normal force is off by {e.force[0]:+.1f} N"
     else:
         text = f"{e.target} {e.component} stepped {e.force[0]:+.1f} sigma"
     return text + (f" (explained by {e.explained_by})" if e.explained_by else "")

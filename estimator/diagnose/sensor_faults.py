@@ -83,6 +83,8 @@ def _steps(
     start = np.maximum(end - L, 0)
     count = n[end] - n[start]
     mean = np.where(count >= L / 2, (c[end] - c[start]) / np.maximum(count, 1), np.nan)
+    if not np.isfinite(mean).any():  # a row sampled too sparsely for a step's window
+        return []
     centre, spread = _robust(mean[np.isfinite(mean)])
     standard = (mean - centre) / spread
     events = []

@@ -81,44 +81,84 @@ def unmodeled_forces(
     """
     if force_prior is None:
         force_prior = FORCE_PRIOR * weight(model)
-    T, nv = est.T, model.nv
-    model = copy.deepcopy(model)
-    model.geom_margin += contact_margin
+    model = with_margin(model, contact_margin)
     bodies = np.array(
         [b for b in range(1, model.nbody) if _moves(model, b) and model.body_mass[b] > 0]
     )
-    info = np.zeros((T, len(bodies), 3, 3))
-    grad = np.zeros((T, len(bodies), 3))
-    residual = est.qfrc_inverse - est.qfrc_known
+    info = np.zeros((est.T, len(bodies), 3, 3))
+    grad = np.zeros((est.T, len(bodies), 3))
     data = mujoco.MjData(model)
-    jacp = np.zeros((3, nv))
-    J_b = np.zeros((len(bodies), nv, 3))
-    for k in range(T):
-        known = np.isfinite(residual[k]) & np.isfinite(sigma[k]) & (sigma[k] > 0)
-        if not known.any():
+    jacp = np.zeros((3, model.nv))
+    J_b = np.zeros((len(bodies), model.nv, 3))
+    for k in range(est.T):
+        knot = knot_residual(model, data, est, sigma, k, contact_force_std)
+        if knot is None:
             continue
-        w = 1.0 / sigma[k, known]
-        data.qpos[:] = est.qpos[k]
-        mujoco.mj_kinematics(model, data)
-        mujoco.mj_comPos(model, data)
-        mujoco.mj_collision(model, data)
-        contacts = Contacts.from_data(data)
-        rows = [
-            contact_jacobian(model, data, contacts, i)[: min(int(contacts.dim[i]), 3)]
-            for i in range(len(contacts.dim))
-        ]
-        A_c = (np.vstack(rows).T[known] * w[:, None]) if rows else np.zeros((known.sum(), 0))
-        S = np.eye(len(w)) + contact_force_std**2 * (A_c @ A_c.T)
         for i, b in enumerate(bodies):
             mujoco.mj_jac(model, data, jacp, None, data.xipos[b], b)
             J_b[i] = jacp.T
-        A_b = J_b[:, known] * w[None, :, None]  # (B, m, 3)
-        S_inv_A = np.linalg.solve(S, A_b.transpose(1, 0, 2).reshape(len(w), -1))
-        S_inv_A = S_inv_A.reshape(len(w), len(bodies), 3).transpose(1, 0, 2)
+        A_b = J_b[:, knot.known] * knot.w[None, :, None]  # (B, m, 3)
+        m = len(knot.w)
+        S_inv_A = np.linalg.solve(knot.S, A_b.transpose(1, 0, 2).reshape(m, -1))
+        S_inv_A = S_inv_A.reshape(m, len(bodies), 3).transpose(1, 0, 2)
         info[k] = np.einsum("bmi,bmj->bij", A_b, S_inv_A) + np.eye(3) / force_prior**2
-        grad[k] = np.einsum("bmi,m->bi", S_inv_A, residual[k, known] * w)
+        grad[k] = np.einsum("bmi,m->bi", S_inv_A, knot.r)
     names = tuple(model.body(int(b)).name or f"body {b}" for b in bodies)
     return UnmodeledForces(est.t_ns, names, bodies, info, grad)
+
+
+@dataclass(frozen=True)
+class KnotResidual:
+    """Knot k's physics residual whitened on the dofs with a known force, with its noise.
+
+    known: (nv,) those dofs; w: (m,) 1/σ on them; r: (m,) W r_k; contacts: the knot's
+    contacts and near-contacts; J_c: their Jacobian rows (normal, tangents; `contact_jacobian`)
+    on the known dofs, one (d, m) per contact; S: (m, m) I + σ_f² A_c A_cᵀ, A_c = W J_cᵀ.
+    `data` holds the knot's kinematics and collisions afterwards.
+    """
+
+    known: np.ndarray
+    w: np.ndarray
+    r: np.ndarray
+    contacts: Contacts
+    J_c: list[np.ndarray]
+    S: np.ndarray
+
+
+def knot_residual(
+    model: mujoco.MjModel,
+    data: mujoco.MjData,
+    est: Estimate,
+    sigma: np.ndarray,
+    k: int,
+    contact_force_std: float,
+) -> KnotResidual | None:
+    """`KnotResidual` of knot k (None: no dof has a known force there); `model` with the
+    contact margin (`with_margin`)."""
+    residual = est.qfrc_inverse[k] - est.qfrc_known[k]
+    known = np.isfinite(residual) & np.isfinite(sigma[k]) & (sigma[k] > 0)
+    if not known.any():
+        return None
+    w = 1.0 / sigma[k, known]
+    data.qpos[:] = est.qpos[k]
+    mujoco.mj_kinematics(model, data)
+    mujoco.mj_comPos(model, data)
+    mujoco.mj_collision(model, data)
+    contacts = Contacts.from_data(data)
+    J_c = [
+        contact_jacobian(model, data, contacts, i)[: min(int(contacts.dim[i]), 3), known]
+        for i in range(len(contacts.dim))
+    ]
+    A_c = np.vstack(J_c).T * w[:, None] if J_c else np.zeros((len(w), 0))
+    S = np.eye(len(w)) + contact_force_std**2 * (A_c @ A_c.T)
+    return KnotResidual(known, w, residual[known] * w, contacts, J_c, S)
+
+
+def with_margin(model: mujoco.MjModel, contact_margin: float) -> mujoco.MjModel:
+    """A copy of `model` whose geoms count as touching `contact_margin` [m] apart."""
+    model = copy.deepcopy(model)
+    model.geom_margin += contact_margin
+    return model
 
 
 def _moves(model: mujoco.MjModel, body: int) -> bool:
