@@ -64,7 +64,7 @@ def test_considered_softness_predicts_how_far_a_re_solved_estimate_moves():
     κ against re-solving the window with κ × 1.02, as RMS over the window: within 15% (the
     base sits on its feet's contacts, so a stiffer or softer contact moves it)."""
     step = 0.02
-    problem, solved, moved = _solved_and_moved("quadruped_trot", 0.005, slice(100, 180), step)
+    problem, solved, moved = _solved_and_moved("quadruped_trot", 0.005, slice(100, 150), step)
     actual = np.sqrt(np.mean((moved.qpos[:, 2] - solved.qpos[:, 2]) ** 2))  # RMS over the window
     only_kappa = replace(problem, settings=replace(problem.settings, model_softness_std=step))
     variance = covariance.consider_variance(only_kappa, solved, ("softness_kappa",))
