@@ -14,8 +14,11 @@ machine, and a worker killed mid-task.
    single-process one in units of its reported σ.
 4. A worker SIGKILLed mid-estimate (ray::estimate_one, after `--kill-after` s): its task is
    retried; the retried estimate against a single process's estimate of the same log.
+5. `physfuse calibrate` of recordings/humanoid_push.mcap (its first `--calibrate-s` s) in one
+   process, then with `--workers 2`: wall times and the two profiles against each other.
 
-Prints a table and writes OUT/scale.json.
+`--parts` runs some of them (the others' results in OUT/scale.json are kept). Prints a table
+and writes OUT/scale.json.
 """
 
 from __future__ import annotations
@@ -54,30 +57,45 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--chunk-s", type=float, default=15.0, help="its chunks' length")
     parser.add_argument("--kill-log", default="humanoid_push", help="the log whose task is killed")
     parser.add_argument("--kill-after", type=float, default=3.0, help="s into its estimate")
+    parser.add_argument("--calibrate-s", type=float, default=4.0, help="of the calibration log")
+    parser.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS))
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
-    results: dict[str, Any] = {
+    report = args.out / "scale.json"
+    results: dict[str, Any] = {}
+    if set(args.parts) != set(PARTS) and report.exists():
+        results = json.loads(report.read_text())
+    results |= {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
         "python": platform.python_version(),
         "method": args.method,
     }
-    logs = sorted((ROOT / "recordings").glob("*.mcap"))
-    results["logs"] = [p.name for p in logs]
-    walls = {}
-    for workers in (1, 2):
-        wall, rows = _fleet(
-            ["--workers", str(workers)], args.out / f"workers{workers}", args.method
-        )
-        walls[workers] = wall
-        results[f"workers_{workers}"] = {"wall_s": wall, "ok": _ok(rows), "rows": rows}
-    results["speedup_2_over_1"] = walls[1] / walls[2]
-    results["cluster"] = _two_nodes(args.out / "cluster", args.method)
-    results["long_log"] = _long_log(args.out / "long", args.long_s, args.chunk_s)
-    results["killed_worker"] = _killed(args.out / "killed", args.kill_log, args.kill_after)
-    (args.out / "scale.json").write_text(json.dumps(results, indent=2) + "\n")
+    if "fleet" in args.parts:
+        logs = sorted((ROOT / "recordings").glob("*.mcap"))
+        results["logs"] = [p.name for p in logs]
+        walls = {}
+        for workers in (1, 2):
+            wall, rows = _fleet(
+                ["--workers", str(workers)], args.out / f"workers{workers}", args.method
+            )
+            walls[workers] = wall
+            results[f"workers_{workers}"] = {"wall_s": wall, "ok": _ok(rows), "rows": rows}
+        results["speedup_2_over_1"] = walls[1] / walls[2]
+    if "cluster" in args.parts:
+        results["cluster"] = _two_nodes(args.out / "cluster", args.method)
+    if "long" in args.parts:
+        results["long_log"] = _long_log(args.out / "long", args.long_s, args.chunk_s)
+    if "killed" in args.parts:
+        results["killed_worker"] = _killed(args.out / "killed", args.kill_log, args.kill_after)
+    if "calibrate" in args.parts:
+        results["calibrate"] = _calibrate(args.out / "calibrate", args.calibrate_s)
+    report.write_text(json.dumps(results, indent=2) + "\n")
     _print(results)
-    print(f"wrote {args.out / 'scale.json'}")
+    print(f"wrote {report}")
     return 0
+
+
+PARTS = ("fleet", "cluster", "long", "killed", "calibrate")
 
 
 def _fleet(where: list[str], out: Path, method: str, **popen: Any) -> tuple[float, list]:
@@ -250,8 +268,48 @@ def _wait_for(find: Any, timeout_s: float = 300.0) -> list[int]:
     raise SystemExit(f"no Ray task worker in {timeout_s} s")
 
 
+def _calibrate(out: Path, seconds: float) -> dict[str, Any]:
+    """`physfuse calibrate` of humanoid_push's first `seconds` in one process (MuJoCo on the
+    cores' threads), then its grid as Ray tasks on 2 local workers (one thread each)."""
+    runs: dict[str, Any] = {}
+    for name, more in (("one process", []), ("2 workers", ["--workers", "2"])):
+        folder = out / name.replace(" ", "_")
+        start = time.perf_counter()
+        subprocess.run(
+            [*PHYSFUSE, "calibrate", "recordings/humanoid_push.mcap", "--config",
+             "configs/humanoid_push.toml", "--duration", f"{seconds:g}", "--out", str(folder),
+             "--quiet", *more],
+            cwd=ROOT, check=True, capture_output=True,
+        )  # fmt: skip
+        report = json.loads((folder / "calibration.json").read_text())
+        runs[name] = {"wall_s": time.perf_counter() - start, "best": report["best"],
+                      "points": report["points"]}  # fmt: skip
+    one, two = (sorted(r["points"], key=lambda p: p["value"]) for r in runs.values())
+    return {
+        "log_s": seconds,
+        "runs": runs,
+        "speedup_2_workers": runs["one process"]["wall_s"] / runs["2 workers"]["wall_s"],
+        "max_rel_diff_mocap_cost": max(
+            abs(a["mocap_cost"] - b["mocap_cost"]) / abs(a["mocap_cost"])
+            for a, b in zip(one, two, strict=True)
+        ),
+    }
+
+
 def _print(r: dict[str, Any]) -> None:
     print(f"machine: {r['machine']}, Python {r['python']}; method {r['method']}")
+    if "workers_1" in r:
+        _print_fleet(r)
+    if "calibrate" in r:
+        c = r["calibrate"]
+        for name, run in c["runs"].items():
+            label = f"calibrate {c['log_s']:g} s, {name}"
+            print(f"{label:34s} {run['wall_s']:8.1f}  best {run['best']:.4g}")
+        print(f"{'speedup, calibrate on 2 workers':34s} {c['speedup_2_workers']:8.2f}")
+        print(f"  profiles' mocap costs within {c['max_rel_diff_mocap_cost']:.1g} (relative)")
+
+
+def _print_fleet(r: dict[str, Any]) -> None:
     print(f"{'fleet':34s} {'wall s':>8s} {'ok':>6s}")
     for w in (1, 2):
         f = r[f"workers_{w}"]

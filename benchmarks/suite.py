@@ -1,7 +1,8 @@
 """The benchmark suite: the physics smoother against the baselines, scenario × condition.
 
     python benchmarks/suite.py [--out DIR] [--work DIR] [--scenarios NAME ...]
-        [--conditions NAME ...] [--methods NAME ...] [--duration S] [--seed N] [--jobs N]
+        [--conditions NAME ...] [--methods NAME ...] [--duration S] [--seed N]
+        [--workers N | --ray-address ADDR]
         [--timeout S] [--no-mismatch] [--no-calibration]
 
 For every scenario and condition (`physfuse simulate SCENARIO --condition CONDITION`,
@@ -51,7 +52,6 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -61,6 +61,7 @@ sys.path.insert(0, str(ROOT))
 
 from estimator.calibrate import config_with  # noqa: E402
 from estimator.evaluate import FORCE_KEYS, TRAJECTORY_KEYS  # noqa: E402
+from estimator.fleet import as_task, ray_session  # noqa: E402
 from estimator.simulate import SCENARIOS  # noqa: E402
 from estimator.simulate.conditions import CONDITIONS  # noqa: E402
 
@@ -325,19 +326,26 @@ def run_suite(
     methods: Sequence[str],
     duration_s: float,
     seed: int,
-    jobs: int,
+    workers: int | None,
     timeout_s: float,
     work: Path,
     reuse: bool = False,
     say: Callable[[str], None] = print,
     mismatch: bool = True,
     calibrate: str | None = None,
+    ray_address: str | None = None,
 ) -> tuple[list[Run], list[Calibration]]:
     """Simulate every (scenario, condition) log, calibrate each robot's `calibrate` setting
     (None: none) on its `calibration_condition` log, then estimate and evaluate every method
     with the calibrated config.
 
+    Every step is a Ray task (`estimator/fleet.py`: a local Ray of `workers` CPUs, or the
+    cluster at `ray_address`), started as soon as the steps it takes are done.
     mismatch=False: every log simulated with the robot exactly its model."""
+    import ray
+
+    # this file is no package's module: Ray's workers get its functions by value
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
     logs = work / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     suffix = "" if mismatch else EXACT_MODEL
@@ -346,57 +354,93 @@ def run_suite(
         dict.fromkeys((s, calibration_condition(c)) for s, c in pairs if s not in PUBLIC_ROBOTS)
     )
     to_simulate = list(dict.fromkeys(pairs + (robots if calibrate else [])))
-    with ThreadPoolExecutor(jobs) as pool:
-        simulated = dict(
-            zip(
-                to_simulate,
-                pool.map(
-                    lambda p: simulate_log(p[0], p[1], seed, duration_s, logs, timeout_s, mismatch),
-                    to_simulate,
-                ),
-                strict=True,
+    method_flag = estimate_has_method_option()
+    with ray_session(workers, ray_address):
+        simulate, fit, one = (as_task(f) for f in (simulate_log, fit_robot, run_one))
+        simulated = {
+            p: simulate.remote(p[0], p[1], seed, duration_s, logs, timeout_s, mismatch)
+            for p in to_simulate
+        }
+        fitting = {
+            robot: fit.remote(
+                *robot,
+                str(calibrate),
+                simulated[robot],
+                work / f"calibration{suffix}",
+                timeout_s,
+                reuse,
             )
-        )
-
-        def fit(robot: tuple[str, str]) -> Calibration:
-            scenario, condition = robot
-            log, config, error = simulated[robot]
-            if error is not None:
-                return Calibration(scenario, condition, str(calibrate), error=f"simulate: {error}")
-            folder = work / f"calibration{suffix}" / scenario / condition
-            result = calibrate_robot(
-                scenario, condition, str(calibrate), log, config, folder, timeout_s, reuse
+            for robot in (robots if calibrate else [])
+        }
+        running = {
+            (s, c, m): one.remote(
+                Run(s, c, m),
+                simulated[s, c],
+                fitting.get((s, calibration_condition(c))),
+                work / f"runs{suffix}",
+                timeout_s,
+                method_flag,
+                reuse,
             )
-            status = f"failed: {result.error}" if result.error else f"{result.value:.4g}"
-            say(f"  {scenario:15s} {condition:12s} calibrated {calibrate}: {status}")
-            return result
+            for s, c in pairs
+            for m in methods
+        }
+        pending = [*fitting.values(), *running.values()]
+        while pending:  # a line as each step is done
+            ready, pending = ray.wait(pending, num_returns=1)
+            say(_done_line(ray.get(ready[0])))
+        calibrations = [ray.get(ref) for ref in fitting.values()]
+        return [ray.get(ref) for ref in running.values()], calibrations
 
-        calibrations = list(pool.map(fit, robots)) if calibrate else []
-        fitted = {(c.scenario, c.condition): c for c in calibrations if c.value is not None}
-        method_flag = estimate_has_method_option()
 
-        def one(key: tuple[str, str, str]) -> Run:
-            scenario, condition, method = key
-            run = Run(scenario, condition, method)
-            log, config, error = simulated[scenario, condition]
-            if error is not None:
-                run.error = f"simulate: {error}"
-                return run
-            folder = work / f"runs{suffix}" / scenario / condition / method
-            # the log's config with its robot's value (a failed calibration: as it is)
-            robot = fitted.get((scenario, calibration_condition(condition)))
-            if robot is not None and robot.value is not None:
-                calibrated = folder.parent / "calibrated.toml"
-                config_with(config, calibrated, robot.setting, robot.value)
-                config = calibrated
-            run = estimate_and_evaluate(run, log, config, folder, timeout_s, method_flag, reuse)
-            status = f"failed: {run.error}" if run.error else f"{run.process_s:.0f} s"
-            status += " (reused)" if run.reused else ""
-            say(f"  {scenario:15s} {condition:12s} {method:10s} {status}")
-            return run
+def fit_robot(
+    scenario: str,
+    condition: str,
+    setting: str,
+    simulated: tuple[Path, Path, str | None],
+    calibrations: Path,
+    timeout_s: float,
+    reuse: bool,
+) -> Calibration:
+    """`calibrate_robot` on the robot's simulated log, into calibrations/scenario/condition."""
+    log, config, error = simulated
+    if error is not None:
+        return Calibration(scenario, condition, setting, error=f"simulate: {error}")
+    folder = calibrations / scenario / condition
+    return calibrate_robot(scenario, condition, setting, log, config, folder, timeout_s, reuse)
 
-        keys = [(s, c, m) for s, c in pairs for m in methods]
-        return list(pool.map(one, keys)), calibrations
+
+def run_one(
+    run: Run,
+    simulated: tuple[Path, Path, str | None],
+    robot: Calibration | None,
+    runs: Path,
+    timeout_s: float,
+    method_flag: bool,
+    reuse: bool,
+) -> Run:
+    """`estimate_and_evaluate` of the run on its log, with its robot's calibrated value (a
+    failed or absent calibration: the log's config as it is)."""
+    log, config, error = simulated
+    if error is not None:
+        run.error = f"simulate: {error}"
+        return run
+    folder = runs / run.scenario / run.condition / run.method
+    if robot is not None and robot.value is not None:
+        calibrated = folder.parent / "calibrated.toml"
+        calibrated.parent.mkdir(parents=True, exist_ok=True)
+        config_with(config, calibrated, robot.setting, robot.value)
+        config = calibrated
+    return estimate_and_evaluate(run, log, config, folder, timeout_s, method_flag, reuse)
+
+
+def _done_line(step: Run | Calibration) -> str:
+    if isinstance(step, Calibration):
+        status = f"failed: {step.error}" if step.error else f"{step.value:.4g}"
+        return f"  {step.scenario:15s} {step.condition:12s} calibrated {step.setting}: {status}"
+    status = f"failed: {step.error}" if step.error else f"{step.process_s:.0f} s"
+    status += " (reused)" if step.reused else ""
+    return f"  {step.scenario:15s} {step.condition:12s} {step.method:10s} {status}"
 
 
 def calibration_text(calibrations: Sequence[Calibration]) -> str:
@@ -758,7 +802,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--duration", type=float, default=DURATION_S, help="log length, s")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--jobs", type=int, default=1, help="runs in parallel")
+    ray = parser.add_mutually_exclusive_group()
+    ray.add_argument(
+        "--workers", type=int, help="steps in parallel on a local Ray (default: a worker per core)"
+    )
+    ray.add_argument("--ray-address", help="the steps on an existing Ray cluster (HEAD_IP:6379)")
     parser.add_argument("--timeout", type=float, default=TIMEOUT_S, help="per step, s")
     parser.add_argument(
         "--reuse-runs",
@@ -777,8 +825,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         "each robot's contact softness (softness_eps) by `physfuse calibrate`",
     )
     args = parser.parse_args(argv)
-    if not args.duration > 0 or args.jobs < 1 or args.timeout <= 0:
-        parser.error("--duration and --timeout must be positive, --jobs at least 1")
+    if (
+        not args.duration > 0
+        or (args.workers is not None and args.workers < 1)
+        or args.timeout <= 0
+    ):
+        parser.error("--duration and --timeout must be positive, --workers at least 1")
     if args.no_mismatch and "mismatch" in args.conditions:
         parser.error(
             "--no-mismatch contradicts the `mismatch` condition: pass --conditions without it"
@@ -787,10 +839,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     exact = ", the robot exactly its model" if args.no_mismatch else ""
+    engine = f"the Ray cluster at {args.ray_address}" if args.ray_address else "a local Ray, "
+    engine += "" if args.ray_address else f"{args.workers or os.cpu_count()} worker(s)"
     print(
         f"suite: {len(args.scenarios)} scenarios × {len(args.conditions)} conditions × "
-        f"{len(args.methods)} methods, {args.duration:g} s logs{exact}, {args.jobs} job(s); "
-        f"{work}"
+        f"{len(args.methods)} methods, {args.duration:g} s logs{exact}, on {engine}; {work}"
     )
     calibrate = None if args.no_calibration else CALIBRATED_SETTING
     runs, calibrations = run_suite(
@@ -799,12 +852,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.methods,
         args.duration,
         args.seed,
-        args.jobs,
+        args.workers,
         args.timeout,
         work,
         args.reuse_runs,
         mismatch=not args.no_mismatch,
         calibrate=calibrate,
+        ray_address=args.ray_address,
     )
     wall = time.perf_counter() - start
     checks = checklist(runs)
@@ -822,7 +876,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             "seed": args.seed,
             "model_mismatch": not args.no_mismatch,
             "calibrated": calibrate,
-            "jobs": args.jobs,
+            "workers": args.workers,
+            "ray_address": args.ray_address,
             "timeout_s": args.timeout,
             "work": str(work),
             "machine": f"{platform.machine()}, {os.cpu_count()} cores, {platform.platform()}",

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import os
+import socket
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -30,7 +31,7 @@ import numpy as np
 import tomlkit
 
 from estimator.batch import estimate
-from estimator.config import MOCAP_KINDS, Config
+from estimator.config import MOCAP_KINDS, Config, load_config
 from estimator.errors import ConfigError, PhysfuseError
 from estimator.io.logs.measurements import Measurement
 from estimator.settings import Settings
@@ -50,6 +51,7 @@ class Point:
     mocap_cost: float  # the criterion
     cost: float  # the whole estimate's robust cost
     wall_time_s: float
+    worker: str = ""  # where the estimate ran: "host pid N"
 
 
 @dataclass
@@ -90,9 +92,12 @@ def calibrate(
     setting: str = "softness_eps",
     grid: Sequence[float] | None = None,
     progress: Callable[[Point], None] | None = None,
+    on_ray: bool = False,
 ) -> Calibration:
     """The value of `setting` (one of CALIBRATED) whose physics estimate of the log has the
-    lowest mocap cost; `grid` defaults to `default_grid` around the settings' value."""
+    lowest mocap cost; `grid` defaults to `default_grid` around the settings' value.
+
+    on_ray: the grid's estimates are Ray tasks, in parallel (inside `fleet.ray_session`)."""
     if setting not in CALIBRATED:
         raise ConfigError(f"calibrate: {setting!r} is not calibrated; expected one of {CALIBRATED}")
     mocap = [name for name, s in config.streams.items() if s.kind in MOCAP_KINDS]
@@ -112,24 +117,24 @@ def calibrate(
     # (the grid is the fit here: the estimator's own softness fit stays off)
     base = replace(settings, method="physics", init="measurements", fit_softness="none")
     points: list[Point] = []
+    shared = _put(measurements) if on_ray else None  # the log, once, in Ray's object store
+
+    def evaluate_all(new: Sequence[float]) -> list[Point]:
+        """Points at `new` values, in their order: on Ray's workers when `on_ray`."""
+        args = [(setting, v, mocap) for v in new]
+        if shared is not None:
+            done = _on_ray(config, shared, base, args, progress)
+        else:
+            done = [
+                _progressed(profile_point(config, measurements, base, *a), progress) for a in args
+            ]
+        points.extend(done)
+        return done
 
     def evaluate(value: float) -> Point:
-        start = time.perf_counter()
-        changed: dict[str, Any] = {setting: value}
-        _, summary = estimate(config, measurements, replace(base, **changed))
-        costs = summary.cost_by_type
-        point = Point(
-            value=value,
-            mocap_cost=sum(costs.get(name, 0.0) for name in mocap),
-            cost=sum(costs.values()),
-            wall_time_s=time.perf_counter() - start,
-        )
-        points.append(point)
-        if progress:
-            progress(point)
-        return point
+        return evaluate_all([value])[0]
 
-    on_grid = [evaluate(v) for v in sorted(values)]
+    on_grid = evaluate_all(sorted(values))
     costs = [p.mocap_cost for p in on_grid]
     if max(costs) - min(costs) < IDENTIFIED_COST:  # the mocap does not see the setting
         return Calibration(setting, initial, initial, points, at_edge=False, identified=False)
@@ -153,6 +158,67 @@ def calibrate(
             evaluate(math.exp(vertex))
     best = min(points, key=lambda p: p.mocap_cost)
     return Calibration(setting, initial, best.value, points, at_edge, sigma_log=sigma_log)
+
+
+def profile_point(
+    config: Config, measurements: Mapping[str, Measurement], settings: Settings,
+    setting: str, value: float, mocap: Sequence[str],
+) -> Point:  # fmt: skip
+    """One point of the profile: the physics estimate with `setting` = value."""
+    start = time.perf_counter()
+    changed: dict[str, Any] = {setting: value}
+    _, summary = estimate(config, measurements, replace(settings, **changed))
+    costs = summary.cost_by_type
+    return Point(
+        value=value,
+        mocap_cost=sum(costs.get(name, 0.0) for name in mocap),
+        cost=sum(costs.values()),
+        wall_time_s=time.perf_counter() - start,
+        worker=f"{socket.gethostname()} pid {os.getpid()}",
+    )
+
+
+def _point_task(config_path: str, measurements: Any, settings: Settings, *args: Any) -> Point:
+    """`profile_point` in a Ray worker (the config by its path: it holds the loaded model)."""
+    return profile_point(load_config(config_path), measurements, settings, *args)
+
+
+def _put(measurements: Mapping[str, Measurement]) -> Any:
+    import ray
+
+    return ray.put(dict(measurements))
+
+
+def _on_ray(
+    config: Config,
+    shared: Any,
+    settings: Settings,
+    args: Sequence[tuple[str, float, Sequence[str]]],
+    progress: Callable[[Point], None] | None,
+) -> list[Point]:
+    """`profile_point` of each of `args` as a Ray task; progress as each one finishes."""
+    import ray
+
+    from estimator.fleet import as_task
+
+    task = as_task(_point_task)
+    refs = [task.remote(str(config.path), shared, settings, *a) for a in args]
+    pending = list(refs)
+    while pending:
+        ready, pending = ray.wait(pending, num_returns=1)
+        try:
+            _progressed(ray.get(ready[0]), progress)
+        except ray.exceptions.RayError as err:  # the estimate's error, or its workers died
+            cause = getattr(err, "cause", None) or err
+            line = (str(cause).strip().splitlines() or [type(cause).__name__])[-1]
+            raise PhysfuseError(f"calibrate: {line}") from None
+    return list(ray.get(refs))
+
+
+def _progressed(point: Point, progress: Callable[[Point], None] | None) -> Point:
+    if progress:
+        progress(point)
+    return point
 
 
 def _current_value(config: Config, settings: Settings, setting: str) -> float:

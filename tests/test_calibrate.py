@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import socket
 
 import numpy as np
 import pytest
@@ -61,14 +63,26 @@ def test_calibrate_finds_the_robots_softness_and_writes_a_config_that_uses_it(
 
 
 def test_a_grid_that_stops_short_of_the_minimum_is_extended_past_its_end(simulated, tmp_path):
+    """In this process, and on a local Ray of 2 workers: the same profile, its grid's
+    estimates in the workers."""
     log, config, true_eps = simulated
-    out = tmp_path / "out"
-    argv = ["calibrate", str(log), "--config", str(config), "--out", str(out), "--quiet"]
-    assert main([*argv, "--range", "0.03", "0.045", "--points", "3"]) == 0
-    report = json.loads((out / "calibration.json").read_text())
-    values = sorted(p["value"] for p in report["points"])
-    assert values[-1] > true_eps and not report["at_edge"]  # stepped ×1.22 past 0.045
-    assert abs(report["best"] - true_eps) < 0.05 * true_eps
+    reports = []
+    for workers in ([], ["--workers", "2"]):
+        out = tmp_path / f"out{len(workers)}"
+        argv = ["calibrate", str(log), "--config", str(config), "--out", str(out), "--quiet"]
+        assert main([*argv, "--range", "0.03", "0.045", "--points", "3", *workers]) == 0
+        reports.append(json.loads((out / "calibration.json").read_text()))
+    here, on_ray = (sorted(r["points"], key=lambda p: p["value"]) for r in reports)
+    assert here[-1]["value"] > true_eps and not reports[0]["at_edge"]  # stepped ×1.22 past 0.045
+    assert abs(reports[0]["best"] - true_eps) < 0.05 * true_eps
+    # (MuJoCo on 1 thread in a worker, 2 here: the same to rounding)
+    assert reports[1]["best"] == pytest.approx(reports[0]["best"], rel=1e-9)
+    for a, b in zip(here, on_ray, strict=True):
+        assert b["value"] == pytest.approx(a["value"], rel=1e-9)
+        assert b["mocap_cost"] == pytest.approx(a["mocap_cost"], rel=1e-9)
+    assert {p["worker"] for p in here} == {f"{socket.gethostname()} pid {os.getpid()}"}
+    grid = [p["worker"] for p in on_ray[:3]]  # the grid's three, in parallel
+    assert len(set(grid)) >= 2 and os.getpid() not in [int(w.split()[-1]) for w in grid]
 
 
 def test_the_grid_and_the_parabola():

@@ -2,11 +2,14 @@
 
     physfuse calibrate LOG --config CONFIG [--setting softness_eps|softness_kappa]
         [--range LO HI] [--points N] [--duration S] [--out DIR] [--config-out PATH]
+        [--workers N | --ray-address ADDR]
 
 Profiles the mocap part of the physics estimate's cost over the setting
 (`estimator/calibrate.py`), prints the profile and the best value, and writes
 DIR/calibration.json and DIR/calibration.png; with --config-out, CONFIG with the value set in
-its [estimator] table, ready for `physfuse estimate`. DIR (and --config-out) are checked
+its [estimator] table, ready for `physfuse estimate`. With --workers or --ray-address the
+grid's estimates run in parallel as Ray tasks (a local Ray or a cluster, as `physfuse
+estimate` runs many logs: estimator/fleet.py). DIR (and --config-out) are checked
 before the first estimate, and the outputs put in place only when the run completes
 (estimator/io/outputs.py).
 """
@@ -35,6 +38,7 @@ from estimator.calibrate import (
 from estimator.config import Config, load_config
 from estimator.errors import PhysfuseError
 from estimator.evaluate import json_ready
+from estimator.fleet import ray_session
 from estimator.io.logs import read_log
 from estimator.io.outputs import OutputFile, OutputFolder
 from estimator.model_checks import check_for_estimate
@@ -71,6 +75,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--config-out", type=Path, help="write CONFIG with the fitted value in [estimator]"
     )
     parser.add_argument("--quiet", action="store_true", help="no line per evaluated value")
+    ray = parser.add_mutually_exclusive_group()
+    ray.add_argument(
+        "--workers", type=int, help="the grid's estimates in parallel on a local Ray of N workers"
+    )
+    ray.add_argument(
+        "--ray-address", help="the grid's estimates on an existing Ray cluster (HEAD_IP:6379)"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -80,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
         raise PhysfuseError(f"--points {args.points}: expected 3 or more")
     if args.duration is not None and args.duration <= 0:
         raise PhysfuseError(f"--duration {args.duration:g}: expected a positive number of s")
+    if args.workers is not None and args.workers < 1:
+        raise PhysfuseError(f"--workers {args.workers}: expected 1 or more")
     config = load_config(args.config)
     settings = Settings.from_config(config)
     # what every estimate of the profile will meet, before the log is read
@@ -129,7 +142,10 @@ def _calibrate(args: argparse.Namespace, config: Config, settings: Settings) -> 
                   f"({p.wall_time_s:.1f} s)", flush=True)  # fmt: skip
 
     print(f"calibrating {args.setting} on {args.log} (each value: one physics estimate)")
-    return calibrate(config, measurements, settings, args.setting, grid, progress)
+    if not (args.workers or args.ray_address):
+        return calibrate(config, measurements, settings, args.setting, grid, progress)
+    with ray_session(args.workers, args.ray_address):
+        return calibrate(config, measurements, settings, args.setting, grid, progress, True)
 
 
 def _print(result: Calibration) -> None:
