@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import pytest
 from mcap.reader import make_reader
@@ -17,24 +18,27 @@ from estimator.config import load_config
 from estimator.diagnose import Event, diagnose
 from estimator.diagnose.detect import detect
 from estimator.diagnose.diagnosis import explained
+from estimator.diagnose.report import message
 from estimator.diagnose.score import score, true_events
 from estimator.diagnose.sensor_faults import isolated
 from estimator.diagnose.unmodeled import UnmodeledForces
 from estimator.io.logs import read_log
+from estimator.io.rerun import write_recording
 from estimator.settings import Settings
 from estimator.simulate import simulate
 from estimator.simulate.disturbances import PUSH_FORCE_N, PUSH_S, fall_time
 from estimator.simulate.model_scenario import model_scenario
 from estimator.simulate.simulation import T0_NS
+from physics.model import weight
 
 ROOT = Path(__file__).resolve().parents[1]
 NS = 1_000_000_000
 
 
-def test_a_push_on_the_go2_base_is_found_on_its_body_and_sized_within_20_percent():
+def test_a_push_on_the_go2_base_is_found_on_its_body_and_sized_within_20_percent(tmp_path):
     """recordings/go2.mcap: Menagerie's Go2 pushed once on the base (1.0–1.1 s, 26 N) in 3 s,
     estimated and diagnosed with the defaults: the push stands out (anything else scores
-    under 2, i.e. within twice the threshold)."""
+    under 2, i.e. within twice the threshold); drawn in the Rerun recording, read back."""
     config = load_config(ROOT / "configs" / "go2.toml")
     log = read_log(ROOT / "recordings" / "go2.mcap", config)
     with open(ROOT / "recordings" / "go2.mcap", "rb") as f:
@@ -57,6 +61,38 @@ def test_a_push_on_the_go2_base_is_found_on_its_body_and_sized_within_20_percent
     truth = [{"kind": "push", "start_s": 1.0, "end_s": 1.1, "body": "base", **push}]
     result = score(events, truth, T0_NS, 3.0)
     assert result.matched[0].isolated and not result.false_alarms
+    _the_push_is_drawn(config, log, est, diagnosis, e, tmp_path / "diagnostics.rrd")
+
+
+def _the_push_is_drawn(config, log, est, diagnosis, e, path) -> None:
+    """The event on the timeline at its start; its force an arrow from the base's centre of
+    mass over its interval's knots and no other; the statistic over its threshold per knot."""
+    from test_visualize import read_recording
+
+    model = config.load_model()
+    entities = read_recording(write_recording(est, model, log, path=path, diagnosis=diagnosis))
+    t0 = min(int(est.t_ns[0]), *(int(m.t_ns[0]) for m in log.measurements.values()))
+    text = entities["/diagnostics/events"]
+    assert text.rows["TextLog:text"] == [[f"{x.kind}: {message(x)}"] for x in diagnosis.events]
+    assert text.time_ns == [x.start_ns - t0 for x in diagnosis.events]
+    arrows = entities["/world/diagnostics/base"]
+    drawn = [k for k, v in enumerate(arrows.rows["Arrows3D:vectors"]) if v]
+    inside = np.flatnonzero((est.t_ns >= e.start_ns) & (est.t_ns <= e.end_ns))
+    assert drawn == inside.tolist()
+    d = mujoco.MjData(model)
+    d.qpos[:] = est.qpos[inside[0]]
+    mujoco.mj_kinematics(model, d)
+    np.testing.assert_allclose(arrows.rows["Arrows3D:origins"][inside[0]], [d.xipos[1]], atol=1e-6)
+    vector = np.array(arrows.rows["Arrows3D:vectors"][inside[0]][0])
+    np.testing.assert_allclose(vector * weight(model), e.force, rtol=1e-5)  # 1 m per weight
+    det = diagnosis.detection
+    statistic = entities["/plots/diagnostics/base"]
+    b = det.forces.bodies.index("base")
+    finite = np.flatnonzero(np.isfinite(det.d2[:, b]))
+    assert statistic.time_ns == (est.t_ns[finite] - t0).tolist()
+    shown = np.ravel(statistic.rows["Scalars:scalars"])
+    np.testing.assert_allclose(shown, det.d2[finite, b] / det.threshold, rtol=1e-6)
+    assert shown.max() > 1 and shown[np.searchsorted(finite, inside)].max() == shown.max()
 
 
 def test_disturbances_write_their_truth_and_leave_out_pushes_the_robot_cannot_take(tmp_path):
@@ -154,8 +190,16 @@ def test_diagnose_command_writes_events_and_diagnostics_topics(tmp_path, capsys)
         statuses = [
             m.status[0] for _, _, _, m in reader.iter_decoded_messages(topics=["/diagnostics"])
         ]
-    assert len(statuses) == len(report["events"])
+        typed = [m for _, _, _, m in reader.iter_decoded_messages(topics=["/diagnostics/events"])]
+    assert len(statuses) == len(typed) == len(report["events"])
     assert all(s.name.startswith("physfuse/") for s in statuses)
+    for m, e in zip(typed, report["events"], strict=True):  # MODEL_ERROR = 1
+        assert (m.kind, m.target, m.component) == (1, e["target"], e["component"])
+        assert m.size[0] == pytest.approx(e["normal_force_error_n"], rel=1e-12)
+        assert m.size_covariance[0] == pytest.approx(e["normal_force_error_std_n"] ** 2)
+        span_ns = (m.end.sec - m.header.stamp.sec) * NS + m.end.nanosec - m.header.stamp.nanosec
+        assert span_ns / NS == pytest.approx(e["end_s"] - e["start_s"], abs=1e-9)
+    assert (out / "diagnostics.rrd").stat().st_size > 0
 
 
 @pytest.mark.parametrize("option", ["--window", "--false-alarms-per-min"])

@@ -26,7 +26,12 @@ from mcap_ros2.decoder import DecoderFactory
 from estimator.cli import main
 from estimator.config import load_config
 from estimator.io.logs import read_log
-from estimator.io.logs.ros2_types import CONTACT_ARRAY_MSG, CONTACT_MSG, message_definition
+from estimator.io.logs.ros2_types import (
+    CONTACT_ARRAY_MSG,
+    CONTACT_MSG,
+    DIAGNOSTIC_EVENT_MSG,
+    message_definition,
+)
 from estimator.io.mcap_writer import Ros2Writer
 from estimator.rotations import quat_mul
 from estimator.simulate import (
@@ -167,6 +172,8 @@ def test_contact_message_definition_is_the_documented_msg_files():
     assert text.startswith(CONTACT_ARRAY_MSG)
     assert "MSG: physfuse_msgs/Contact\n" + CONTACT_MSG in text
     assert "MSG: geometry_msgs/Quaternion" in text
+    assert (folder / "DiagnosticEvent.msg").read_text() == DIAGNOSTIC_EVENT_MSG
+    assert message_definition("physfuse_msgs/msg/DiagnosticEvent").startswith(DIAGNOSTIC_EVENT_MSG)
 
 
 # -- ground truth ----------------------------------------------------------------------------------

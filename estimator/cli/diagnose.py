@@ -9,6 +9,9 @@ whole or not at all:
     DIR/diagnostics.mcap  the estimate's topics (`physfuse estimate`'s layout) plus
                           /diagnostics (DiagnosticArray) and /diagnostics/unmodeled_force/<body>
                           (WrenchStamped): open it in Foxglove next to the log
+    DIR/diagnostics.rrd   the estimate's Rerun recording with the events on its timeline, each
+                          unmodeled contact's force as an arrow on its body and the detector's
+                          statistic per body (estimator/io/rerun.py): `rerun DIR/diagnostics.rrd`
 """
 
 from __future__ import annotations
@@ -28,10 +31,11 @@ from estimator.errors import ConfigError
 from estimator.io.logs import read_log
 from estimator.io.mcap_writer import EstimateWriter
 from estimator.io.outputs import OutputFolder
+from estimator.io.rerun import write_recording
 from estimator.model_checks import check_for_estimate
 from estimator.settings import Settings
 
-OUTPUTS = ("events.json", "diagnostics.mcap")
+OUTPUTS = ("events.json", "diagnostics.mcap", "diagnostics.rrd")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -86,6 +90,10 @@ def run(args: argparse.Namespace) -> int:
             out.write(est, range(est.T), imu_sites)
             write_mcap(out.writer, diagnosis)
         (tmp / "events.json").write_text(json.dumps(events_json(diagnosis, t0), indent=2) + "\n")
+        write_recording(
+            est, model, log, path=tmp / "diagnostics.rrd", diagnosis=diagnosis,
+            application_id="physfuse diagnose",
+        )  # fmt: skip
     print(table(diagnosis, t0))
     print(f"outputs: {', '.join(str(args.out / n) for n in OUTPUTS)}")
     return 0

@@ -5,6 +5,9 @@
                                        hardware_id the body, contact or stream, level WARN (ERROR
                                        for a sensor fault), key/values: start_s, end_s,
                                        force_n (x y z) ± σ, component, score, explained_by
+/diagnostics/events                    physfuse_msgs/msg/DiagnosticEvent, the same events
+                                       typed (msgs/physfuse_msgs/msg/DiagnosticEvent.msg):
+                                       kind, interval, target, size and its covariance
 /diagnostics/unmodeled_force/<body>    geometry_msgs/msg/WrenchStamped per knot: the force
                                        on the body's centre of mass (world frame) that
                                        would explain the physics residual alone (the
@@ -21,9 +24,11 @@ from estimator.diagnose.contact_model import MODEL_ERROR
 from estimator.diagnose.detect import Event
 from estimator.diagnose.diagnosis import Diagnosis
 from estimator.io.logs import ros2_types
-from estimator.io.mcap_writer import MessageSink, header, vector3
+from estimator.io.mcap_writer import MessageSink, header, time_msg, vector3
 
 DIAGNOSTICS = "/diagnostics"
+EVENTS = "/diagnostics/events"
+KINDS = {"unmodeled contact": 0, MODEL_ERROR: 1, "sensor fault": 2}  # DiagnosticEvent.kind
 UNMODELED_FORCE = "/diagnostics/unmodeled_force/"
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 WARN, ERROR = 1, 2  # diagnostic_msgs/DiagnosticStatus levels
@@ -111,7 +116,7 @@ def write_mcap(sink: MessageSink, diagnosis: Diagnosis) -> None:
         status = {
             "level": ERROR if e.kind == "sensor fault" else WARN,
             "name": f"physfuse/{e.kind.replace(' ', '_')}",
-            "message": _message(e),
+            "message": message(e),
             "hardware_id": e.target,
             "values": [{"key": k, "value": _text(v)} for k, v in values.items()],
         }
@@ -121,6 +126,7 @@ def write_mcap(sink: MessageSink, diagnosis: Diagnosis) -> None:
             {"header": header(e.start_ns), "status": [status]},
             e.start_ns,
         )
+        sink.write(EVENTS, ros2_types.DIAGNOSTIC_EVENT, event_message(e), e.start_ns)
     for b, body in enumerate(forces.bodies):
         topic = UNMODELED_FORCE + body
         for k in np.flatnonzero(np.isfinite(det.force[:, b]).all(axis=1)):
@@ -132,7 +138,27 @@ def write_mcap(sink: MessageSink, diagnosis: Diagnosis) -> None:
             sink.write(topic, ros2_types.WRENCH_STAMPED, fields, t)
 
 
-def _message(e: Event) -> str:
+def event_message(e: Event) -> dict[str, Any]:
+    """physfuse_msgs/msg/DiagnosticEvent fields (msgs/physfuse_msgs/msg/DiagnosticEvent.msg)."""
+    best = sorted(e.candidates.items(), key=lambda kv: -kv[1])[:3]
+    return {
+        "header": header(e.start_ns, "world"),
+        "kind": KINDS[e.kind],
+        "end": time_msg(e.end_ns),
+        "detected": time_msg(e.detected_ns),
+        "target": e.target,
+        "component": e.component,
+        "size": [float(v) for v in e.force],
+        "size_covariance": [float(v) for v in np.ravel(e.force_cov)],
+        "score": float(e.score),
+        "explained_by": e.explained_by,
+        "candidates": [name for name, _ in best],
+        "candidate_likelihood_ratios": [float(r) for _, r in best],
+    }
+
+
+def message(e: Event) -> str:
+    """One line: what the event is, where and how big."""
     if e.kind == "unmodeled contact":
         text = f"{e.magnitude:.0f} N on {e.target}"
     elif e.kind == MODEL_ERROR:

@@ -26,6 +26,15 @@ of the log, and the recording's start time is that instant in absolute time):
     plots/imu_bias/<stream>/{accel,gyro}/{x,y,z}   m/s², rad/s
     plots/uncertainty/<dof>                 qpos_std (free joint m / rad, hinge rad, slide m)
 
+With a diagnosis (`physfuse diagnose`, estimator/diagnose):
+
+    diagnostics/events                      TextLog at each event's start (report.message)
+    world/diagnostics/<body>                Arrows3D from the body's centre of mass along an
+                                            unmodeled contact's fitted force, its interval's
+                                            knots (the contacts' scale)
+    plots/diagnostics/<body>                the detector's statistic over its threshold per
+                                            knot (> 1: alarm), plots/diagnostics/threshold at 1
+
 Every per-knot array goes out in bulk with `send_columns`; NaN samples (a knot without that
 factor) are left out of their series. One blueprint: the 3D view on the left, tabs on the right
 (residuals, contact forces, IMU biases, uncertainty). Only this module imports Rerun.
@@ -48,6 +57,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from estimator.diagnose.diagnosis import Diagnosis
+from estimator.diagnose.report import message
 from estimator.errors import PhysfuseError
 from estimator.estimate import Estimate
 from estimator.io.logs.reader import Log
@@ -100,6 +111,7 @@ def write_recording(
     grpc_port: int = DEFAULT_GRPC_PORT,
     web_port: int = DEFAULT_WEB_PORT,
     open_browser: bool = False,
+    diagnosis: Diagnosis | None = None,
 ) -> Path | None:
     """Write the estimate (and the log's mocap poses and markers) as a Rerun recording.
 
@@ -118,6 +130,7 @@ def write_recording(
         process exits (Rerun 0.41 has no call for it).
     recording_id: the recording's id (default: a new UUID), e.g. a run id shared with other
         outputs of the same run.
+    diagnosis: `physfuse diagnose`'s events, forces and statistic drawn too (module docstring).
     Each call makes its own `rr.RecordingStream` (never the global one).
     """
     if estimate.qpos.shape != (estimate.T, model.nq):
@@ -128,13 +141,15 @@ def write_recording(
     if path is None and not spawn and not serve:
         raise ValueError("write_recording: give a path, spawn=True or serve=True")
     recording_id = recording_id or str(uuid.uuid4())
-    blueprint = build_blueprint(estimate, model)
+    blueprint = build_blueprint(estimate, model, diagnosis is not None)
     out = None if path is None else Path(path)
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
         rec = rr.RecordingStream(application_id, recording_id=recording_id)
         rec.set_sinks(rr.FileSink(str(out)), default_blueprint=blueprint)
         _log_all(rec, estimate, model, log)
+        if diagnosis is not None:
+            _log_diagnosis(rec, model, estimate, diagnosis, _start_ns(estimate, log))
         rec.flush()
         rec.disconnect()  # closes the file and writes its footer
     if spawn or serve:
@@ -350,9 +365,23 @@ def serve_until_interrupted() -> None:
         stop_serving()
 
 
-def build_blueprint(estimate: Estimate, model: mujoco.MjModel) -> rrb.Blueprint:
-    """The layout: 3D view left; right, tabs of time series (only those with data)."""
+def build_blueprint(
+    estimate: Estimate, model: mujoco.MjModel, diagnosis: bool = False
+) -> rrb.Blueprint:
+    """The layout: 3D view left; right, tabs of time series (only those with data), the
+    diagnosis's first when there is one."""
     tabs: list[rrb.Container | rrb.View] = []
+    if diagnosis:
+        tabs.append(
+            rrb.Vertical(
+                rrb.TextLogView(origin="diagnostics/events", name="Events"),
+                rrb.TimeSeriesView(
+                    origin="plots/diagnostics", name="Unmodeled-force statistic / threshold"
+                ),
+                row_shares=[1, 2],
+                name="Diagnostics",
+            )
+        )
     residual_views = []
     if "physics" in estimate.residuals:
         residual_views.append(
@@ -432,6 +461,65 @@ def _log_all(
     _log_residuals(rec, estimate, dofs, knots)
     _log_imu_bias(rec, estimate, knots)
     _log_series_group(rec, "plots/uncertainty", dofs, estimate.qpos_std, knots)
+
+
+def _log_diagnosis(
+    rec: rr.RecordingStream,
+    model: mujoco.MjModel,
+    estimate: Estimate,
+    diagnosis: Diagnosis,
+    t0_ns: int,
+) -> None:
+    """The events as text, unmodeled contacts as arrows, the detector's statistic as plots."""
+    det = diagnosis.detection
+    knots = estimate.t_ns - np.int64(t0_ns)
+    for e in diagnosis.events:
+        level = rr.TextLogLevel.ERROR if e.kind == "sensor fault" else rr.TextLogLevel.WARN
+        rec.set_time("time", duration=np.timedelta64(e.start_ns - t0_ns, "ns"))
+        rec.log("diagnostics/events", rr.TextLog(f"{e.kind}: {message(e)}", level=level))
+    rec.reset_time()
+    for b, body in enumerate(det.forces.bodies):
+        _log_series(
+            rec, f"plots/diagnostics/{_part(body)}", body, det.d2[:, b] / det.threshold, knots
+        )
+    _log_series(
+        rec, "plots/diagnostics/threshold", "threshold", np.ones(estimate.T), knots, (0, 0, 0)
+    )
+    scale = FORCE_SCALE_M_PER_WEIGHT / max(model_weight(model), 1e-9)
+    d = mujoco.MjData(model)
+    contacts = [e for e in diagnosis.events if e.kind == "unmodeled contact"]
+    for body in dict.fromkeys(e.target for e in contacts):
+        b = model.body(body).id
+        counts = np.zeros(estimate.T, dtype=np.int64)
+        origins, vectors, labels = [], [], []
+        for k in range(estimate.T):
+            on = [
+                e
+                for e in contacts
+                if e.target == body and e.start_ns <= estimate.t_ns[k] <= e.end_ns
+            ]
+            if not on:
+                continue
+            d.qpos[:] = estimate.qpos[k]
+            mujoco.mj_kinematics(model, d)
+            counts[k] = 1
+            origins.append(d.xipos[b].copy())
+            vectors.append(on[0].force * scale)
+            labels.append(f"{on[0].magnitude:.1f} ± {on[0].magnitude_std:.1f} N unmodeled")
+        rec.send_columns(
+            f"world/diagnostics/{_body_name(model, b, escape=True)}",
+            indexes=[_time(knots)],
+            columns=rr.Arrows3D.columns(
+                origins=np.reshape(origins, (-1, 3)),
+                vectors=np.reshape(vectors, (-1, 3)),
+                labels=labels,
+            ).partition(counts),
+        )
+        rec.log(
+            f"world/diagnostics/{_body_name(model, b, escape=True)}",
+            rr.Arrows3D.from_fields(radii=0.015, colors=[(192, 57, 43)]),
+            static=True,
+        )
 
 
 def _log_model(

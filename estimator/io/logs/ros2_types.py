@@ -106,7 +106,42 @@ float64 timestep                        # h [s]: impulse = force * timestep
 physfuse_msgs/Contact[] contacts
 """
 
-PHYSFUSE_MSGS: Mapping[str, str] = {CONTACT: CONTACT_MSG, CONTACT_ARRAY: CONTACT_ARRAY_MSG}
+DIAGNOSTIC_EVENT = "physfuse_msgs/msg/DiagnosticEvent"
+DIAGNOSTIC_EVENT_MSG = """\
+# One event of `physfuse diagnose` (docs/diagnostics.md): where and when the physics does not
+# add up. Written at the event's start on /diagnostics/events, beside its DiagnosticArray
+# status on /diagnostics.
+
+# kind
+uint8 UNMODELED_CONTACT=0   # a force on `target` (a body) that actuation and the modeled
+                            # contacts do not explain: a push, a collision
+uint8 MODEL_ERROR=1         # a modeled contact's normal force off (softness, stiffness or the
+                            # surface's height); target "contact <body>–<geom>"
+uint8 SENSOR_FAULT=2        # a stream's residual row that steps; target the stream,
+                            # component the row ("gyro z", "FR_hip_joint position")
+
+std_msgs/Header header                  # stamp: the event's start; frame_id: "world"
+uint8 kind
+builtin_interfaces/Time end             # the event's end
+builtin_interfaces/Time detected        # when the detector first alarmed
+string target
+string component
+float64[] size                          # UNMODELED_CONTACT: the force on the target's centre of
+                                        # mass, world frame [N] (3 values); MODEL_ERROR: the
+                                        # normal force error [N] (1); SENSOR_FAULT: the step in
+                                        # σ of its row (1)
+float64[] size_covariance               # of size, row-major (len(size)² values)
+float64 score                           # the peak statistic over its threshold (> 1)
+string explained_by                     # the sensor fault that explains it ("": none)
+string[] candidates                     # UNMODELED_CONTACT: the best-fitting bodies, best first
+float64[] candidate_likelihood_ratios   # their likelihood ratios
+"""
+
+PHYSFUSE_MSGS: Mapping[str, str] = {
+    CONTACT: CONTACT_MSG,
+    CONTACT_ARRAY: CONTACT_ARRAY_MSG,
+    DIAGNOSTIC_EVENT: DIAGNOSTIC_EVENT_MSG,
+}
 
 _SEPARATOR = "=" * 80
 
