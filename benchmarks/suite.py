@@ -67,7 +67,9 @@ from estimator.simulate.conditions import CONDITIONS  # noqa: E402
 
 PHYSFUSE = [sys.executable, "-m", "estimator.cli"]
 METHODS = ("physics", "kinematic", "ekf", "ukf", "raw")
-BASELINES = ("kinematic", "ekf", "ukf", "raw")
+# GTSAM's legged estimators: for legged robots without mocap (`--conditions no_mocap`)
+LEGGED_METHODS = ("gtsam-legged-ekf", "gtsam-legged-smoother")
+BASELINES = ("kinematic", "ekf", "ukf", "raw", *LEGGED_METHODS)
 DURATION_S = 4.0  # ≥ 3 s: two occlusions; the whole suite in ~15 min on 2 cores (README)
 TIMEOUT_S = 600.0
 
@@ -86,6 +88,9 @@ METRICS: Mapping[str, tuple[str, bool]] = {
     "imu_accel_bias_mps2": ("ba m/s²", True),
     "imu_gyro_bias_dps": ("bg °/s", True),
     "position_anees": ("ANEES", True),  # eᵀΣ⁻¹e/3 of the position: 1 when honest
+    "position_drift_pct": ("drift%", True),  # no mocap: what proprioception cannot hold
+    "yaw_drift_deg_per_m": ("yaw°/m", True),
+    "tilt_deg": ("tilt °", True),
     "wall_over_duration": ("wall/T", True),
 }
 # the same errors while mocap was occluded (`physfuse evaluate`: a body's pose and twist over
@@ -796,10 +801,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     every = [*SCENARIOS, *PUBLIC_ROBOTS]
     parser.add_argument("--scenarios", nargs="+", default=every, choices=every)
-    # disturbances is the diagnostics' condition (benchmarks/diagnostics.py), not the estimator's
-    estimator_conditions = [c for c in CONDITIONS if c != "disturbances"]
+    # disturbances is the diagnostics' condition (benchmarks/diagnostics.py), not the
+    # estimator's; no_mocap the legged robots' (`--conditions no_mocap --scenarios …`)
+    estimator_conditions = [c for c in CONDITIONS if c not in ("disturbances", "no_mocap")]
     parser.add_argument("--conditions", nargs="+", default=estimator_conditions, choices=CONDITIONS)
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument(
+        "--methods", nargs="+", default=list(METHODS), choices=[*METHODS, *LEGGED_METHODS]
+    )
     parser.add_argument("--duration", type=float, default=DURATION_S, help="log length, s")
     parser.add_argument("--seed", type=int, default=0)
     ray = parser.add_mutually_exclusive_group()

@@ -17,6 +17,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from estimator.baselines.filters import filter_estimate
+from estimator.baselines.gtsam_legged import METHODS as LEGGED
+from estimator.baselines.gtsam_legged import legged_estimate
 from estimator.config import Config
 from estimator.estimate import Estimate
 from estimator.io.logs.measurements import Measurement
@@ -40,6 +42,8 @@ def estimate(
     with threadpool_limits(limits=1, user_api="blas"):
         if settings.method == "raw":
             return raw_estimate(config, measurements, settings)
+        if settings.method in LEGGED:
+            return legged_estimate(config, measurements, settings)
         if settings.method in ("ekf", "ukf"):
             return filter_estimate(config, measurements, settings, settings.method, progress)
         return smooth(config, measurements, settings, progress, knots)

@@ -35,6 +35,10 @@ TRAJECTORY_KEYS = (  # the motion's errors: pose, joint angles, velocities
     "joint_velocity_dps",
 )
 FORCE_KEYS = ("contact_force_N", "contact_force_pct_weight")
+# what proprioception alone cannot hold (no mocap): of the body that travels farthest, the
+# growth of its horizontal position error over the path it travelled, of its yaw error per
+# metre, and its tilt error (the angle between the true and estimated up axes, RMS)
+DRIFT_KEYS = ("position_drift_pct", "yaw_drift_deg_per_m", "tilt_deg")
 # the same errors over the occlusions: a body's pose and twist over its own, the joints and
 # contact forces over any body's
 OCCLUDED_KEYS = tuple(f"occluded_{key}" for key in (*TRAJECTORY_KEYS, *FORCE_KEYS))
@@ -48,6 +52,7 @@ SUMMARY_KEYS = (
     *OCCLUDED_KEYS,
     "occluded_s",
     "position_anees",
+    *DRIFT_KEYS,
 )
 
 
@@ -178,10 +183,11 @@ def compare_states(
         )
         nees = position_nees(errors["pos"], covariance)
         pooled_nees.append(nees)
-        bodies[body] = _body_metrics(errors) | {
-            "knots": len(t),
-            "position_anees": _mean_or_nan(nees),
-        }
+        bodies[body] = (
+            _body_metrics(errors)
+            | {"knots": len(t), "position_anees": _mean_or_nan(nees)}
+            | drift(e, g)
+        )
         if occlusions is not None and body in occlusions:
             span = intersect_intervals(occlusions[body], np.array([[t[0], t[-1]]]))
             hidden = within(t, span)
@@ -249,6 +255,9 @@ def compare_states(
         "occluded_s": _total_s(spans) if occlusions is not None else float("nan"),
         "position_anees": _mean_or_nan(pool(pooled_nees)),
     }
+    farthest = max(bodies.values(), key=lambda b: b["path_m"], default=None)
+    for key in DRIFT_KEYS:
+        summary[key] = farthest[key] if farthest else float("nan")
     return {
         "summary": summary,
         "bodies": bodies,
@@ -257,6 +266,36 @@ def compare_states(
         "contact_threshold_N": CONTACT_WEIGHT_FRACTION * weight,
         "imu_bias": imu,
     }
+
+
+def drift(e: np.ndarray, g: np.ndarray) -> dict[str, float]:
+    """DRIFT_KEYS and "path_m" of a body's estimated poses e against the true g (n, ≥ 7:
+    position, quaternion w x y z): the horizontal path g travelled; the growth of the
+    horizontal position error over it (%) and of the yaw error per metre of it; the tilt."""
+    path = float(np.sum(np.linalg.norm(np.diff(g[:, :2], axis=0), axis=1)))
+    growth = (e[-1, :2] - g[-1, :2]) - (e[0, :2] - g[0, :2])
+    yaw = _yaw(e[:, 3:7]) - _yaw(g[:, 3:7])
+    yaw_growth = float(np.angle(np.exp(1j * (yaw[-1] - yaw[0]))))  # wrapped to ±π
+    up_e, up_g = _up(e[:, 3:7]), _up(g[:, 3:7])
+    tilt = np.arctan2(np.linalg.norm(np.cross(up_e, up_g), axis=1), np.sum(up_e * up_g, axis=1))
+    return {
+        "path_m": path,
+        "position_drift_pct": 100.0 * float(np.linalg.norm(growth)) / path if path else np.nan,
+        "yaw_drift_deg_per_m": float(np.degrees(abs(yaw_growth))) / path if path else np.nan,
+        "tilt_deg": float(np.degrees(rmse(tilt))),
+    }
+
+
+def _up(quat: np.ndarray) -> np.ndarray:
+    """(n, 3) the body's z axis in the world, from quaternions (n, 4) w x y z."""
+    w, x, y, z = quat.T
+    return np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], axis=1)
+
+
+def _yaw(quat: np.ndarray) -> np.ndarray:
+    """(n,) the heading of the body's x axis in the world, rad."""
+    w, x, y, z = quat.T
+    return np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
 
 
 def position_nees(errors: np.ndarray, covariance: np.ndarray) -> np.ndarray:

@@ -20,6 +20,12 @@ from estimator.estimate import Estimate
 from estimator.factors.marginal_prior import MarginalPrior
 from estimator.io.logs.measurements import Measurement
 from estimator.knots import interpolated_at_knots, knot_grid
+from estimator.leg_odometry import (
+    START_POSITION_STD_M,
+    START_YAW_STD_RAD,
+    base_from_legs,
+    unanchored,
+)
 from estimator.problem import (
     MODEL_ERROR,
     Problem,
@@ -139,6 +145,10 @@ def smooth(
         if nb is None:
             nb = problem.nb
             bias = np.zeros((T, nb))
+            if unanchored(model, measurements):  # the estimate is relative to its start pose
+                prior = MarginalPrior.start_pose(
+                    model, qpos, bias, problem.bias_prior, START_POSITION_STD_M, START_YAW_STD_RAD
+                )
         assert bias is not None
         init_q = qpos[s:e].copy()
         init_b = bias[s:e].copy()
@@ -408,6 +418,8 @@ def initial_trajectory(
     if measured_out is not None:
         measured_out[:] = measured
     _fill_gaps(model, qpos, measured)
+    if unanchored(model, measurements):  # no mocap: the base from proprioception
+        base_from_legs(model, qpos, measurements, t_ns)
     if filled is not None:
         filled[:] = _gap_knots(measured, t_ns, held_ns)
     return qpos

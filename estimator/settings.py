@@ -41,7 +41,15 @@ class Settings:
     method: str = setting(
         "physics",
         "physics (the physics prior) | kinematic (sensors and a smoothness prior)",
-        choices=("physics", "kinematic", "ekf", "ukf", "raw"),
+        choices=(
+            "physics",
+            "kinematic",
+            "ekf",
+            "ukf",
+            "raw",
+            "gtsam-legged-ekf",
+            "gtsam-legged-smoother",
+        ),
     )
     path: str = setting(
         "native",

@@ -46,3 +46,33 @@ class MarginalPrior:
     def cost(self, model: mujoco.MjModel, qpos: np.ndarray, bias: np.ndarray) -> float:
         e = self.error(model, qpos, bias)
         return 0.5 * float(e @ self.info @ e)
+
+    @classmethod
+    def start_pose(
+        cls,
+        model: mujoco.MjModel,
+        qpos: np.ndarray,
+        bias: np.ndarray,
+        bias_prior: np.ndarray,
+        position_std: float,
+        yaw_std: float,
+    ) -> MarginalPrior:
+        """The start pose where proprioception cannot see it, as the first window's prior on
+        its first key: the free base's x, y (σ position_std) and yaw (σ yaw_std) held at
+        qpos[0], b_0 at its prior (σ bias_prior), every other direction free. The sweep's
+        marginalization carries it on: what x, y and yaw are not observed, their σ grows.
+
+        yaw: the rotation about world z; a free joint's rotation dofs are body axes, where z
+        is Rᵀ e_z."""
+        nv = model.nv
+        nz = nv + len(bias_prior)
+        j = next(j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE)
+        dof, adr = int(model.jnt_dofadr[j]), int(model.jnt_qposadr[j])
+        R = np.zeros(9)
+        mujoco.mju_quat2Mat(R, qpos[0, adr + 3 : adr + 7])
+        axis = R.reshape(3, 3).T @ np.array([0.0, 0.0, 1.0])
+        info = np.zeros((nz, nz))
+        info[dof, dof] = info[dof + 1, dof + 1] = position_std**-2
+        info[dof + 3 : dof + 6, dof + 3 : dof + 6] = np.outer(axis, axis) * yaw_std**-2
+        info[nv:, nv:] = np.diag(bias_prior**-2.0)
+        return cls(qpos[:1].copy(), bias[:1].copy(), info, np.zeros(nz), np.zeros((0, nz)))

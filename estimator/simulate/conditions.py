@@ -69,6 +69,8 @@ CONDITIONS: Mapping[str, str] = {
     "outliers": "nominal + 2% of mocap frames per body (marker) off by 3-15 cm",
     "mismatch": "nominal with the model off by exactly ±10% mass, ±30% friction",
     "no_commands": "nominal without the command topic (no command stream in the config)",
+    "no_mocap": "nominal without motion capture (no mocap stream in the log or the config): "
+    "IMU, encoders and commands, as a legged robot in the field",
     "disturbances": "nominal + pushes on random bodies (20-100 N, 0.05-0.3 s), an IMU bias "
     "step, an encoder offset jump",
 }
@@ -180,6 +182,13 @@ def with_condition(scenario: Scenario, condition: str) -> Scenario:
         mismatch = MISMATCH
     elif condition == "no_commands":
         sensors = tuple(s for s in sensors if not isinstance(s, Commands))
+    elif condition == "no_mocap":
+        if not any(isinstance(s, Imu) for s in sensors):
+            raise SimulationError(
+                f"scenario {scenario.name}: the no_mocap condition needs an IMU (a floating "
+                "base estimated from proprioception); this scenario has none"
+            )
+        sensors = tuple(s for s in sensors if not isinstance(s, MocapPoses | MocapMarkers))
     elif condition == "disturbances":
         bodies = disturbances.push_bodies(load_model(scenario.model))
         faulty = _first(sensors, Imu, disturbances.ImuBiasStep)

@@ -1,0 +1,249 @@
+"""The floating base from proprioception, for the initial trajectory of a log without mocap:
+the IMU's orientation and kinematic leg odometry (Bloesch et al., "State Estimation for Legged
+Robots", RSS 2013): a foot on the ground stays where it is, so between knots the base moves by
+minus the stance feet's motion relative to it, through the encoders' forward kinematics.
+
+    R_k     the IMU's orientation (q_ref_site ⊗ site_quat⁻¹), its yaw turned so that the first
+            knot has the start pose's; without an orientation, the gyro integrated from the
+            start pose with the accelerometer's tilt (a complementary filter, TILT_GAIN)
+    c_ik    foot i's point relative to the base origin, world axes: FK(R_k, joints_k); a round
+            foot's centre (sphere, a capsule's end), which rolls: c moves by Δθ_i × r_i e_z
+            over a stance foot (Δθ_i its rotation, r_i its radius); a flat foot's centre
+    S_k     the stance feet: the contact flags where the log has them, else the feet within
+            STANCE_M of the lowest
+    p_k+1   = p_k + mean over i in S_k ∩ S_k+1 of (Δθ_i × r_i e_z − (c_i,k+1 − c_ik))   (x, y)
+    z_k     = mean over i in S_k of (h_i − c_ik,z + r_i)     h_i: foot i's sole's height at home
+
+The feet are the geoms that touch the world (within FOOT_GAP_M) at the start pose. The start
+pose is the model's home keyframe (else qpos0); x, y and yaw are not observable from
+proprioception and drift from there.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import mujoco
+import numpy as np
+
+from estimator.config import MOCAP_KINDS
+from estimator.io.logs.measurements import Measurement
+from estimator.knots import interpolated_at_knots
+
+START_POSITION_STD_M = 1e-5  # the start pose's x, y and yaw: the reference the estimate
+START_YAW_STD_RAD = 1e-5  # is relative to (`MarginalPrior.start_pose`)
+FOOT_GAP_M = 0.01  # a geom this close to a world geom at the start pose is a foot
+STANCE_M = 0.015  # a foot this close to the lowest one is on the ground (without flags)
+TILT_GAIN = 1.0  # 1/s: how fast the accelerometer pulls roll and pitch (no IMU orientation)
+
+
+def unanchored(model: mujoco.MjModel, measurements: Mapping[str, Measurement]) -> bool:
+    """A free base and no mocap in the log: its x, y and yaw are seen by nothing absolute."""
+    mocap = any(m.kind in MOCAP_KINDS and len(m) for m in measurements.values())
+    return free_base(model)[0] >= 0 and not mocap
+
+
+def base_from_legs(
+    model: mujoco.MjModel,
+    qpos: np.ndarray,
+    measurements: Mapping[str, Measurement],
+    t_ns: np.ndarray,
+) -> bool:
+    """Write the free base's pose into qpos (T, nq) from the IMU and the stance feet, in
+    place (the joints already in it). False, qpos untouched: the model has no free base with
+    an IMU site on it, or no foot touches the world at the start pose."""
+    base, adr = free_base(model)
+    imu = next((m for m in measurements.values() if m.kind == "imu" and len(m)), None)
+    if base < 0 or imu is None or imu.element_type != "site":
+        return False
+    site = model.site(imu.elements[0])
+    if int(site.bodyid[0]) != base:
+        return False
+    start = qpos[0].copy()
+    d = mujoco.MjData(model)
+    feet, heights = feet_at(model, d, start)
+    if not feet:
+        return False
+    R = orientations(imu, site, start[adr + 3 : adr + 7], t_ns)
+    T = len(t_ns)
+    rel = np.empty((T, len(feet), 3))  # c_ik: the feet's points, base origin at 0
+    turn = np.empty((T, len(feet), 3, 3))  # the feet's orientations, world
+    for k in range(T):
+        d.qpos[:] = qpos[k]
+        d.qpos[adr : adr + 3] = 0.0
+        d.qpos[adr + 3 : adr + 7] = R[k]
+        mujoco.mj_kinematics(model, d)
+        rel[k], radii = foot_points(model, d, feet)
+        turn[k] = d.geom_xmat[feet].reshape(-1, 3, 3)
+    sole = rel[:, :, 2] - radii  # the feet's lowest points' heights, base origin at 0
+    on_ground, _ = stance(model, feet, sole, measurements, t_ns)
+    p = np.empty((T, 3))
+    p[0] = start[adr : adr + 3]
+    for k in range(T - 1):
+        both = on_ground[k] & on_ground[k + 1]
+        if both.any():
+            # a foot that rolls without slipping: its point moves by Δθ × r e_z in the world
+            rolled = np.array(
+                [_rotation_vector(turn[k + 1, i] @ turn[k, i].T) for i in range(len(feet))]
+            )
+            roll = np.cross(rolled, radii[:, None] * np.array([0.0, 0.0, 1.0]))
+            step = np.mean(roll[both] - (rel[k + 1, both] - rel[k, both]), axis=0)
+        else:  # in flight: keep the last step
+            step = p[k] - p[k - 1] if k else np.zeros(3)
+        p[k + 1] = p[k] + step
+    for k in range(T):
+        if on_ground[k].any():
+            p[k, 2] = np.mean(heights[on_ground[k]] - sole[k, on_ground[k]])
+    qpos[:, adr : adr + 3] = p
+    qpos[:, adr + 3 : adr + 7] = R
+    return True
+
+
+def _rotation_vector(mat: np.ndarray) -> np.ndarray:
+    quat = np.zeros(4)
+    mujoco.mju_mat2Quat(quat, mat.reshape(9))
+    out = np.zeros(3)
+    mujoco.mju_quat2Vel(out, quat, 1.0)
+    return out
+
+
+def free_base(model: mujoco.MjModel) -> tuple[int, int]:
+    """(body, qpos address) of the first free joint's body, or (-1, -1)."""
+    for j in range(model.njnt):
+        if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+            return int(model.jnt_bodyid[j]), int(model.jnt_qposadr[j])
+    return -1, -1
+
+
+def feet_at(
+    model: mujoco.MjModel, d: mujoco.MjData, qpos: np.ndarray
+) -> tuple[list[int], np.ndarray]:
+    """Per moving body within FOOT_GAP_M of a world geom at qpos, its geom lowest there (a
+    shin's capsule ends inside its foot's sphere), and their soles' heights."""
+    d.qpos[:] = qpos
+    mujoco.mj_kinematics(model, d)
+    world = [g for g in range(model.ngeom) if model.geom_bodyid[g] == 0]
+    fromto = np.zeros(6)
+    feet = []
+    for g in range(model.ngeom):
+        if model.geom_bodyid[g] == 0 or not (model.geom_contype[g] or model.geom_conaffinity[g]):
+            continue
+        gap = min(
+            (mujoco.mj_geomDistance(model, d, w, g, FOOT_GAP_M, fromto) for w in world),
+            default=np.inf,
+        )
+        if gap < FOOT_GAP_M:
+            feet.append(g)
+    points, radii = foot_points(model, d, feet)
+    lowest: dict[int, int] = {}
+    for i, g in enumerate(feet):  # the lowest sole; of two within a mm, the rounder
+        b, j = int(model.geom_bodyid[g]), lowest.get(int(model.geom_bodyid[g]))
+        key_i = (round((points[i, 2] - radii[i]) * 1e3), -radii[i])
+        if j is None or key_i < (round((points[j, 2] - radii[j]) * 1e3), -radii[j]):
+            lowest[b] = i
+    keep = sorted(lowest.values())
+    return [feet[i] for i in keep], points[keep, 2] - radii[keep]
+
+
+def foot_points(
+    model: mujoco.MjModel, d: mujoco.MjData, feet: list[int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """(feet, 3) each foot's centre of curvature at its sole — a sphere's centre, a capsule's
+    lower end — or a flat foot's centre, and (feet,) its rolling radius (0 if flat)."""
+    points = d.geom_xpos[feet].copy()
+    radii = np.zeros(len(feet))
+    for i, g in enumerate(feet):
+        kind, size = int(model.geom_type[g]), model.geom_size[g]
+        if kind == mujoco.mjtGeom.mjGEOM_CAPSULE:
+            axis = d.geom_xmat[g].reshape(3, 3)[:, 2] * size[1]
+            points[i] += -axis if axis[2] > 0 else axis
+        if kind in (mujoco.mjtGeom.mjGEOM_SPHERE, mujoco.mjtGeom.mjGEOM_CAPSULE):
+            radii[i] = size[0]
+    return points, radii
+
+
+def orientations(
+    imu: Measurement, site: object, start_quat: np.ndarray, t_ns: np.ndarray
+) -> np.ndarray:
+    """(T, 4) the base's orientation per knot, w x y z (module docstring)."""
+    site_quat = np.asarray(site.quat)  # type: ignore[attr-defined]  # body_from_site
+    values = _filled(interpolated_at_knots(imu, t_ns)[:, 0])  # (T, 10): q, gyro, accel
+    quat_ws = values[:, :4]
+    T = len(t_ns)
+    out = np.empty((T, 4))
+    inverse_site = np.zeros(4)
+    mujoco.mju_negQuat(inverse_site, site_quat)
+    if np.isfinite(quat_ws).all():
+        for k in range(T):
+            mujoco.mju_mulQuat(out[k], quat_ws[k] / np.linalg.norm(quat_ws[k]), inverse_site)
+        return _with_start_yaw(out, start_quat)
+    mat = np.zeros(9)
+    mujoco.mju_quat2Mat(mat, site_quat)
+    R_bs = mat.reshape(3, 3)
+    gyro = np.nan_to_num(values[:, 4:7]) @ R_bs.T  # body frame
+    accel = np.nan_to_num(values[:, 7:10]) @ R_bs.T
+    out[0] = start_quat
+    dt = np.diff(t_ns) / 1e9
+    for k in range(T - 1):
+        R = np.zeros(9)
+        mujoco.mju_quat2Mat(R, out[k])
+        up = R.reshape(3, 3) @ accel[k]  # the specific force, world axes: ≈ +g·z standing
+        norm = np.linalg.norm(up)
+        # the world rotation that turns `up` toward z, as a body-frame rate
+        tilt = np.cross(up / norm, [0.0, 0.0, 1.0]) if norm > 1e-6 else np.zeros(3)
+        omega = gyro[k] + TILT_GAIN * (R.reshape(3, 3).T @ tilt)
+        out[k + 1] = out[k]
+        mujoco.mju_quatIntegrate(out[k + 1], omega, dt[k])
+    return out
+
+
+def _filled(values: np.ndarray) -> np.ndarray:
+    """Each column's NaN knots (before the first sample, across a gap) from its nearest
+    samples; a column without any stays NaN."""
+    out = values.copy()
+    k = np.arange(len(values))
+    for c in range(values.shape[1]):
+        ok = np.isfinite(values[:, c])
+        if ok.any() and not ok.all():
+            out[:, c] = np.interp(k, k[ok], values[ok, c])
+    return out
+
+
+def _with_start_yaw(quat: np.ndarray, start_quat: np.ndarray) -> np.ndarray:
+    """quat (T, 4) turned about world z so that the first has start_quat's yaw."""
+    delta = _yaw(start_quat) - _yaw(quat[0])
+    turn = np.array([np.cos(delta / 2), 0.0, 0.0, np.sin(delta / 2)])
+    out = np.empty_like(quat)
+    for k in range(len(quat)):
+        mujoco.mju_mulQuat(out[k], turn, quat[k])
+    return out
+
+
+def _yaw(quat: np.ndarray) -> float:
+    R = np.zeros(9)
+    mujoco.mju_quat2Mat(R, quat)
+    return float(np.arctan2(R[3], R[0]))  # of the body's x axis in the world
+
+
+def stance(
+    model: mujoco.MjModel,
+    feet: list[int],
+    sole: np.ndarray,
+    measurements: Mapping[str, Measurement],
+    t_ns: np.ndarray,
+) -> tuple[np.ndarray, str]:
+    """(T, feet) bool, which feet are on the ground — the contact flags of the feet's bodies
+    where logged, else the feet whose soles (heights `sole` (T, feet), any common origin) are
+    within STANCE_M of the lowest — and which of the two it is."""
+    on_ground = sole <= sole.min(axis=1, keepdims=True) + STANCE_M
+    flags = next((m for m in measurements.values() if m.kind == "contact_flags" and len(m)), None)
+    if flags is None:
+        return on_ground, f"the feet within {STANCE_M * 1e3:g} mm of the lowest"
+    values = interpolated_at_knots(flags, t_ns)[:, :, 0]
+    for e, name in enumerate(flags.elements):
+        body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+        for i, g in enumerate(feet):
+            if model.geom_bodyid[g] == body:
+                ok = np.isfinite(values[:, e])
+                on_ground[ok, i] = values[ok, e] > 0.5
+    return on_ground, f"the log's contact flags ({flags.stream})"

@@ -1,0 +1,112 @@
+"""Without motion capture: a trotting quadruped's base from its IMU, encoders and commands (the
+`no_mocap` condition). Leg odometry starts it; the physics smoother holds the start pose and
+reports what proprioception cannot see — x, y and yaw — as a σ that grows."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from estimator.batch import estimate
+from estimator.cli import main
+from estimator.config import MOCAP_KINDS, load_config
+from estimator.io.logs import read_log
+from estimator.io.state_topics import read_state_topics
+from estimator.knots import knot_grid
+from estimator.leg_odometry import unanchored
+from estimator.run import initial_trajectory
+from estimator.settings import Settings
+
+
+@pytest.fixture(scope="module")
+def trot(tmp_path_factory):
+    """quadruped_trot, 2 s without mocap: (config, measurements, truth time, truth qpos)."""
+    folder = tmp_path_factory.mktemp("no_mocap")
+    log, config = folder / "trot.mcap", folder / "trot.toml"
+    argv = ["simulate", "quadruped_trot", "--condition", "no_mocap", "--seed", "0"]
+    argv += ["--duration", "2", "--out", str(log), "--config-out", str(config), "--quiet"]
+    assert main(argv) == 0
+    cfg = load_config(config)
+    t_true, q_true = read_state_topics(log, "/ground_truth").qpos(cfg.load_model())
+    return cfg, read_log(log, cfg).measurements, t_true, q_true
+
+
+def _truth_at(t_ns, t_true, q_true):
+    return q_true[np.clip(np.searchsorted(t_true, t_ns), 0, len(t_true) - 1)]
+
+
+def _tilt_and_yaw_deg(q, q_true):
+    """(roll/pitch error RMS, yaw error per knot) of the base, degrees."""
+    error = (
+        Rotation.from_quat(q[:, 3:7], scalar_first=True)
+        * Rotation.from_quat(q_true[:, 3:7], scalar_first=True).inv()
+    )
+    euler = error.as_euler("xyz", degrees=True)
+    return float(np.sqrt(np.mean(euler[:, :2] ** 2))), euler[:, 2]
+
+
+def test_no_mocap_leaves_only_proprioception_in_the_log_and_the_config(trot):
+    config, measurements, _, _ = trot
+    kinds = {s.kind for s in config.streams.values()}
+    assert kinds == {"imu", "joint_state", "command"} and not kinds & set(MOCAP_KINDS)
+    assert unanchored(config.load_model(), measurements)
+
+
+def test_leg_odometry_starts_the_base_where_the_robot_trots(trot):
+    """The initial trajectory follows the trot (≈ 0.5 m in 2 s) from the IMU's orientation and
+    the stance feet: within 10% of the distance at the end, its height within 5 mm."""
+    config, measurements, t_true, q_true = trot
+    model = config.load_model()
+    t_ns = knot_grid(measurements, model.opt.timestep)
+    q = initial_trajectory(model, measurements, t_ns)
+    truth = _truth_at(t_ns, t_true, q_true)
+    travel = np.sum(np.linalg.norm(np.diff(truth[:, :2], axis=0), axis=1))
+    assert travel > 0.3
+    drift = (q[-1, :2] - truth[-1, :2]) - (q[0, :2] - truth[0, :2])
+    assert np.linalg.norm(drift) < 0.1 * travel
+    assert np.sqrt(np.mean((q[:, 2] - truth[:, 2]) ** 2)) < 0.005
+    tilt, _ = _tilt_and_yaw_deg(q, truth)
+    assert tilt < 0.5
+
+
+def test_the_estimate_holds_its_start_pose_and_reports_what_it_cannot_see(trot):
+    """x, y and yaw stay at the start pose's at the first knot and their σ grows along the log
+    (nothing absolute sees them), while z, roll and pitch (the floor and gravity see them)
+    stay as certain as they start; the base follows the robot."""
+    config, measurements, t_true, q_true = trot
+    model = config.load_model()
+    est, _ = estimate(config, measurements, Settings.from_config(config))
+    truth = _truth_at(est.t_ns, t_true, q_true)
+    home = model.key_qpos[0] if model.nkey else model.qpos0
+    np.testing.assert_allclose(est.qpos[0, :2], home[:2], atol=1e-4)
+    tilt, yaw = _tilt_and_yaw_deg(est.qpos, truth)
+    assert abs(yaw[0]) < 0.01 and tilt < 0.2
+    std = est.qpos_std  # free joint dofs: x y z, then rotation about the body's axes
+    unseen, seen = std[:, [0, 1, 5]], std[:, [2, 3, 4]]
+    assert np.all(unseen[-1] > 2.5 * unseen[0]) and unseen[-1, 2] > 0.005  # yaw: 0.3° in 2 s
+    assert np.all(seen[-1] < 2 * seen[0] + 1e-4)
+    travel = np.sum(np.linalg.norm(np.diff(truth[:, :2], axis=0), axis=1))
+    error = np.linalg.norm(est.qpos[:, :2] - truth[:, :2], axis=1)
+    assert error.max() < 0.1 * travel  # it moved with the robot
+
+
+@pytest.mark.parametrize("method", ["gtsam-legged-ekf", "gtsam-legged-smoother"])
+def test_gtsams_legged_estimators_run_on_the_same_log_in_the_same_layout(trot, method):
+    """gtsam's LeggedInvariantEKF and LeggedFixedLagSmoother, fed the IMU and the feet from
+    the encoders (stance by the lowest feet: this log has no contact flags), follow the
+    trot: the base within a third of the distance at the end, tilted under 2°."""
+    config, measurements, t_true, q_true = trot
+    settings = replace(Settings.from_config(config), method=method)
+    est, summary = estimate(config, measurements, settings)
+    assert f"{method}: stance from the feet within 15 mm of the lowest" in summary.warnings
+    truth = _truth_at(est.t_ns, t_true, q_true)
+    assert np.all(np.isfinite(est.qpos))
+    travel = np.sum(np.linalg.norm(np.diff(truth[:, :2], axis=0), axis=1))
+    drift = (est.qpos[-1, :2] - truth[-1, :2]) - (est.qpos[0, :2] - truth[0, :2])
+    assert np.linalg.norm(drift) < travel / 3
+    assert np.linalg.norm(est.qpos[-1, :2] - est.qpos[0, :2]) > travel / 2  # it moved
+    tilt, _ = _tilt_and_yaw_deg(est.qpos, truth)
+    assert tilt < 2.0
