@@ -27,6 +27,7 @@ import mujoco
 import numpy as np
 
 from estimator.config import Config
+from estimator.errors import ConfigError
 from estimator.estimate import Estimate
 from estimator.io.logs.measurements import Measurement
 from estimator.knots import knot_grid
@@ -57,13 +58,21 @@ def legged_estimate(
     base, adr = free_base(model)
     imu = next((m for m in measurements.values() if m.kind == "imu" and len(m)), None)
     joints = next((m for m in measurements.values() if m.kind == "joint_state" and len(m)), None)
-    if base < 0 or imu is None or joints is None:
-        raise ValueError(f"--method {settings.method}: needs a free base, an IMU and encoders")
+    if base < 0 or imu is None or joints is None or imu.element_type != "site":
+        raise ConfigError(
+            f"{config.path}: --method {settings.method} needs a legged robot's log: a free "
+            "base with an IMU on it and joint encoders (joint_state)"
+        )
     site = model.site(imu.elements[0])
     stream = config.streams[imu.stream]
     d = mujoco.MjData(model)
     home = qpos[0].copy()
     feet, soles_home = feet_at(model, d, home)
+    if int(site.bodyid[0]) != base or not feet:
+        raise ConfigError(
+            f"{config.path}: --method {settings.method} needs the IMU on the base "
+            f"({model.body(base).name}) and feet touching the floor at the home pose"
+        )
     rate = (len(imu) - 1) / ((imu.t_ns[-1] - imu.t_ns[0]) / 1e9)
     params = _params(gtsam, stream.noise, rate, site)
     # the start: home, turned to the IMU's orientation, at rest
