@@ -158,7 +158,8 @@ _KIND_KEYS: Mapping[str, tuple[str, ...]] = {
     "wrench": ("site", "body", "quat_site_sensor", "mount"),
     "contact_flags": ("bodies", "geoms"),
 }
-_TOP_KEYS = ("model", "description", "streams")
+_TOP_KEYS = ("model", "description", "start_pose", "streams")
+_START_POSE_KEYS = ("x", "y", "yaw_deg")
 SECTIONS = ("estimator", "simulate")  # tables of physfuse's own, validated on loading
 _IDENTITY_WXYZ = (1.0, 0.0, 0.0, 0.0)
 _MAX_OFFSET_NS = 10**15
@@ -245,16 +246,22 @@ class Config:
     description: str
     streams: Mapping[str, StreamConfig]
     sections: Mapping[str, Any] = field(default_factory=dict)
+    # a free base's start x [m], y [m] and yaw [rad] (`start_pose`): its home keyframe's
+    start_pose: tuple[float, float, float] | None = None
 
     def load_model(self) -> mujoco.MjModel:
-        """The MuJoCo model the config maps onto, with the sites of its mounts."""
-        if not any(s.mount for s in self.streams.values()):
+        """The MuJoCo model the config maps onto, with the sites of its mounts and its home
+        keyframe at the start pose."""
+        if not any(s.mount for s in self.streams.values()) and self.start_pose is None:
             return load_model(self.model_path)
         return self.model_spec().compile()
 
     def model_spec(self) -> mujoco.MjSpec:
-        """The model as an MjSpec, with one site per mounted stream (`Mount`)."""
+        """The model as an MjSpec, with one site per mounted stream (`Mount`) and, with a
+        start pose, the home keyframe's free base there (roll, pitch and height kept)."""
         spec = mujoco.MjSpec.from_file(str(self.model_path))
+        if self.start_pose is not None:
+            _set_start_pose(spec, load_model(self.model_path), self.start_pose)
         mounts = [(s.element_keys[0], s.mount) for s in self.streams.values() if s.mount]
         if mounts:
             model = load_model(self.model_path)
@@ -268,6 +275,13 @@ class Config:
                     )
                 mount.add_to(spec, model)
         return spec
+
+    def starting_at(self, x: float, y: float, yaw_deg: float) -> Config:
+        """This config with start_pose = { x, y, yaw_deg } (`physfuse estimate --start-pose`)."""
+        raw = {"x": x, "y": y, "yaw_deg": yaw_deg}
+        parser = _Parser(self.path, (), False)
+        start = parser.start_pose(raw, load_model(self.model_path))
+        return dataclasses.replace(self, start_pose=start)
 
     def streams_on(self, topic: str) -> tuple[StreamConfig, ...]:
         """The streams fed by `topic` (several streams may share one, e.g. /tf)."""
@@ -288,6 +302,28 @@ class NameCheck:
     name: str
     found: bool
     valid: tuple[str, ...]  # the names the model has for that element type
+
+
+def _set_start_pose(
+    spec: mujoco.MjSpec, model: mujoco.MjModel, start: tuple[float, float, float]
+) -> None:
+    """The home keyframe (added from qpos0 where the model has none) with its first free
+    joint at x, y and heading yaw: q ← R_z(yaw − yaw_home) ⊗ q_home."""
+    j = next(j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE)
+    adr = int(model.jnt_qposadr[j])
+    key = next((k for k in spec.keys if k.name == "home"), None)
+    qpos = np.array(key.qpos if key is not None and len(key.qpos) else model.qpos0, float)
+    w, x, y, z = qpos[adr + 3 : adr + 7]
+    turn = start[2] - math.atan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
+    quat = np.empty(4)
+    mujoco.mju_mulQuat(
+        quat, np.array([math.cos(turn / 2), 0, 0, math.sin(turn / 2)]), qpos[adr + 3 : adr + 7]
+    )
+    qpos[adr : adr + 2] = start[:2]
+    qpos[adr + 3 : adr + 7] = quat
+    if key is None:
+        key = spec.add_key(name="home")
+    key.qpos = qpos
 
 
 def load_config(
@@ -380,6 +416,7 @@ class _Parser:
         except PhysicsError as err:
             raise self.error("model", str(err)) from err
         description = self.string(raw.get("description", ""), "description")
+        start_pose = self.start_pose(raw["start_pose"], model) if "start_pose" in raw else None
         streams_raw = self.table(raw.get("streams", {}), "streams")
         if not streams_raw:
             raise self.error("streams", "no streams; add at least one [streams.<name>] table")
@@ -397,6 +434,7 @@ class _Parser:
             description=description,
             streams=MappingProxyType(streams),
             sections=MappingProxyType(sections),
+            start_pose=start_pose,
         )
         if self.check_names:
             bad = [c for c in check_model_names(config, model) if not c.found]
@@ -793,6 +831,18 @@ class _Parser:
             )
         w, x, y, z = (float(v) for v in value)
         return (w, x, y, z)
+
+    def start_pose(self, raw: Any, model: mujoco.MjModel) -> tuple[float, float, float]:
+        """start_pose = { x = …, y = …, yaw_deg = … } (each optional, 0) → (x, y, yaw rad)."""
+        table = self.table(raw, "start_pose")
+        self.unknown_keys(table, "start_pose", _START_POSE_KEYS)
+        if not any(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE):
+            raise self.error("start_pose", "the model has no free joint (a floating base) to place")
+        x, y, yaw = (table.get(k, 0.0) for k in _START_POSE_KEYS)
+        for k, v in zip(_START_POSE_KEYS, (x, y, yaw), strict=True):
+            if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+                raise self.error(f"start_pose.{k}", f"expected a number, got {self.show(v)}")
+        return float(x), float(y), math.radians(yaw)
 
     def unknown_keys(self, raw: dict[str, Any], key: str, allowed: tuple[str, ...]) -> None:
         for name in raw:

@@ -5,7 +5,9 @@ minus the stance feet's motion relative to it, through the encoders' forward kin
 
     R_k     the IMU's orientation (q_ref_site ⊗ site_quat⁻¹), its yaw turned so that the first
             knot has the start pose's; without an orientation, the gyro integrated from the
-            start pose with the accelerometer's tilt (a complementary filter, TILT_GAIN)
+            start pose with the accelerometer's tilt (a complementary filter, TILT_GAIN); an
+            IMU on a body the joints carry (a humanoid's torso): that body's, turned to the
+            base's through the encoders (R_body ⊗ Q_rel⁻¹, `body_in_base`)
     c_ik    foot i's point relative to the base origin, world axes: FK(R_k, joints_k); a round
             foot's centre (sphere, a capsule's end), which rolls: c moves by Δθ_i × r_i e_z
             over a stance foot (Δθ_i its rotation, r_i its radius); a flat foot's centre
@@ -15,8 +17,9 @@ minus the stance feet's motion relative to it, through the encoders' forward kin
     z_k     = mean over i in S_k of (h_i − c_ik,z + r_i)     h_i: foot i's sole's height at home
 
 The feet are the geoms that touch the world (within FOOT_GAP_M) at the start pose. The start
-pose is the model's home keyframe (else qpos0); x, y and yaw are not observable from
-proprioception and drift from there.
+pose is the model's home keyframe (else qpos0), which the config's `start_pose` (or `physfuse
+estimate --start-pose`) moves; x, y and yaw are not observable from proprioception and drift
+from there.
 """
 
 from __future__ import annotations
@@ -26,9 +29,10 @@ from collections.abc import Mapping
 import mujoco
 import numpy as np
 
-from estimator.config import MOCAP_KINDS
+from estimator.config import MOCAP_KINDS, Config
 from estimator.io.logs.measurements import Measurement
 from estimator.knots import interpolated_at_knots
+from estimator.rotations import quat_mul
 
 START_POSITION_STD_M = 1e-5  # the start pose's x, y and yaw: the reference the estimate
 START_YAW_STD_RAD = 1e-5  # is relative to (`MarginalPrior.start_pose`)
@@ -51,20 +55,24 @@ def base_from_legs(
 ) -> bool:
     """Write the free base's pose into qpos (T, nq) from the IMU and the stance feet, in
     place (the joints already in it). False, qpos untouched: the model has no free base with
-    an IMU site on it, or no foot touches the world at the start pose."""
+    an IMU site on it or on a body its joints carry, or no foot touches the world at the start
+    pose."""
     base, adr = free_base(model)
     imu = next((m for m in measurements.values() if m.kind == "imu" and len(m)), None)
     if base < 0 or imu is None or imu.element_type != "site":
         return False
     site = model.site(imu.elements[0])
-    if int(site.bodyid[0]) != base:
+    body = int(site.bodyid[0])  # the IMU's: the base or a body the encoders put on it
+    if int(model.body_rootid[body]) != base:
         return False
     start = qpos[0].copy()
     d = mujoco.MjData(model)
     feet, heights = feet_at(model, d, start)
     if not feet:
         return False
-    R = orientations(imu, site, start[adr + 3 : adr + 7], t_ns)
+    _, Q_rel = body_in_base(model, d, qpos, body)
+    R_body = orientations(imu, site, quat_mul(start[adr + 3 : adr + 7], Q_rel[0]), t_ns)
+    R = base_orientations(R_body, Q_rel)
     T = len(t_ns)
     rel = np.empty((T, len(feet), 3))  # c_ik: the feet's points, base origin at 0
     turn = np.empty((T, len(feet), 3, 3))  # the feet's orientations, world
@@ -97,6 +105,57 @@ def base_from_legs(
     qpos[:, adr : adr + 3] = p
     qpos[:, adr + 3 : adr + 7] = R
     return True
+
+
+def body_in_base(
+    model: mujoco.MjModel, d: mujoco.MjData, qpos: np.ndarray, body: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(T, 3), (T, 4): `body`'s origin and orientation in the free base's frame at each knot,
+    through the joints of qpos (T, nq) between them (the base's own: 0, identity)."""
+    base, adr = free_base(model)
+    T = len(qpos)
+    p, Q = np.zeros((T, 3)), np.tile([1.0, 0.0, 0.0, 0.0], (T, 1))
+    if body == base:
+        return p, Q
+    for k in range(T):
+        d.qpos[:] = qpos[k]
+        d.qpos[adr : adr + 7] = [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+        mujoco.mj_kinematics(model, d)
+        p[k], Q[k] = d.xpos[body], d.xquat[body]
+    return p, Q
+
+
+def base_orientations(body_quat: np.ndarray, rel_quat: np.ndarray) -> np.ndarray:
+    """(T, 4) the base's orientation R_body ⊗ Q_rel⁻¹ from a body's, R_body (T, 4), and its
+    orientation on the base, Q_rel (T, 4: `body_in_base`)."""
+    return quat_mul(body_quat, rel_quat * np.array([1.0, -1.0, -1.0, -1.0]))
+
+
+def unobserved_line(model: mujoco.MjModel, qpos: np.ndarray, std: np.ndarray, source: str) -> str:
+    """What a log without mocap cannot see, for the summary: x, y and yaw relative to the start
+    pose (from `source`), their σ at the first and the last knot (std: (T, nv) marginal σ)."""
+    base, adr = free_base(model)
+    dof = int(model.jnt_dofadr[model.body_jntadr[base]])
+    w, x, y, z = qpos[0, adr + 3 : adr + 7]
+    yaw = np.degrees(np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z)))
+    xy = np.hypot(std[:, dof], std[:, dof + 1])
+    spin = np.degrees(std[:, dof + 5])  # about the base's z axis: ≈ the heading's
+    return (
+        f"no mocap: x, y and yaw are relative to the start pose (x {qpos[0, adr]:.3f} m, "
+        f"y {qpos[0, adr + 1]:.3f} m, yaw {yaw:.1f}°: {source}) and unobservable: their σ "
+        f"grows from {xy[0] * 1e3:.2g} mm, {spin[0]:.2g}° to {xy[-1] * 1e3:.2g} mm, "
+        f"{spin[-1]:.2g}° (qpos_std); z, roll, pitch, the velocities, joints and contact "
+        "forces are observed"
+    )
+
+
+def start_source(config: Config) -> str:
+    """Where the start pose comes from, in words."""
+    if config.start_pose is not None:
+        return "the config's start_pose or --start-pose"
+    model = config.load_model()
+    has_home = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, "home") >= 0
+    return "the model's home keyframe" if has_home else "the model's qpos0"
 
 
 def _rotation_vector(mat: np.ndarray) -> np.ndarray:
@@ -165,7 +224,8 @@ def foot_points(
 def orientations(
     imu: Measurement, site: object, start_quat: np.ndarray, t_ns: np.ndarray
 ) -> np.ndarray:
-    """(T, 4) the base's orientation per knot, w x y z (module docstring)."""
+    """(T, 4) the orientation of the IMU site's body per knot, w x y z (module docstring);
+    start_quat: that body's at the first knot."""
     site_quat = np.asarray(site.quat)  # type: ignore[attr-defined]  # body_from_site
     values = _filled(interpolated_at_knots(imu, t_ns)[:, 0])  # (T, 10): q, gyro, accel
     quat_ws = values[:, :4]

@@ -24,7 +24,9 @@ from estimator.leg_odometry import (
     START_POSITION_STD_M,
     START_YAW_STD_RAD,
     base_from_legs,
+    start_source,
     unanchored,
+    unobserved_line,
 )
 from estimator.problem import (
     MODEL_ERROR,
@@ -230,6 +232,8 @@ def smooth(
             break
         s += a
     assert bias is not None
+    if unanchored(model, measurements):
+        warnings.append(unobserved_line(model, qpos, std, start_source(config)))
     full = build_problem(config, measurements, settings, t_ns, compiled)
     est, summary = finish(
         config, full, qpos, bias, std, start, iterations, converged, warnings, passes, kept_starts
@@ -331,9 +335,11 @@ def finish(
     warnings: list[str],
     passes: Mapping[str, int],
     kept_starts: Sequence[str] = (),
+    qvel: np.ndarray | None = None,
 ) -> tuple[Estimate, Summary]:
-    """The Estimate of a whole-log trajectory and its Summary (any method)."""
-    est = collect_estimate(problem, qpos, bias, std, config)
+    """The Estimate of a whole-log trajectory and its Summary (any method; qvel: a method's
+    own velocity states, see `collect_estimate`)."""
+    est = collect_estimate(problem, qpos, bias, std, config, qvel=qvel)
     if problem.settings.method == "physics":  # (a baseline's misfit is no news about the model)
         warnings = warnings + consistency_warnings(est, problem)
     summary = Summary(
@@ -551,6 +557,7 @@ def collect_estimate(
     config: Config,
     knots: Sequence[int] | None = None,
     residuals: bool = True,
+    qvel: np.ndarray | None = None,
 ) -> Estimate:
     """The Estimate of a trajectory qpos (T, nq) with IMU biases (T, nb) on problem's knots:
     v, a by finite differences, forces and impulses by the native analytic inverse (contact
@@ -559,9 +566,12 @@ def collect_estimate(
 
     knots: the knots whose forces and contacts are wanted (default: all; the others NaN, no
     contacts); residuals=False leaves the residuals out (a streaming update publishes knots,
-    not a report)."""
+    not a report); qvel: (T, nv) the knots' velocities where the method has its own (a filter's
+    velocity state), NaN where it has none; else finite differences."""
     model, h = problem.model, problem.h
     v = velocities(model, qpos, h)
+    if qvel is not None:
+        v = np.where(np.isnan(qvel), v, qvel)
     a = accelerations(v, h)
     dyn = make_dynamics(model, "native")  # the problem's model, its softness applied
     qfrc = np.full((problem.T, model.nv), np.nan)

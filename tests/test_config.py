@@ -117,7 +117,7 @@ STREAM = '[streams.s]\ntype = "pose"\ntopic = "/p"\n'
     [
         (
             HEAD + 'modle = "x"\n',
-            "modle: unknown key; allowed keys: model, description, streams",
+            "modle: unknown key; allowed keys: model, description, start_pose, streams",
         ),
         ('[streams.s]\ntype = "pose"\n', "model: missing"),
         (

@@ -4,6 +4,8 @@ reports what proprioception cannot see — x, y and yaw — as a σ that grows."
 
 from __future__ import annotations
 
+import json
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -13,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from estimator.batch import estimate
 from estimator.cli import main
 from estimator.config import MOCAP_KINDS, load_config
+from estimator.errors import ConfigError
 from estimator.io.logs import read_log
 from estimator.io.state_topics import read_state_topics
 from estimator.knots import knot_grid
@@ -22,13 +25,20 @@ from estimator.settings import Settings
 
 
 @pytest.fixture(scope="module")
-def trot(tmp_path_factory):
-    """quadruped_trot, 2 s without mocap: (config, measurements, truth time, truth qpos)."""
+def trot_files(tmp_path_factory):
+    """quadruped_trot, 2 s without mocap: (log, config) paths."""
     folder = tmp_path_factory.mktemp("no_mocap")
     log, config = folder / "trot.mcap", folder / "trot.toml"
     argv = ["simulate", "quadruped_trot", "--condition", "no_mocap", "--seed", "0"]
     argv += ["--duration", "2", "--out", str(log), "--config-out", str(config), "--quiet"]
     assert main(argv) == 0
+    return log, config
+
+
+@pytest.fixture(scope="module")
+def trot(trot_files):
+    """(config, measurements, truth time, truth qpos) of `trot_files`."""
+    log, config = trot_files
     cfg = load_config(config)
     t_true, q_true = read_state_topics(log, "/ground_truth").qpos(cfg.load_model())
     return cfg, read_log(log, cfg).measurements, t_true, q_true
@@ -110,3 +120,58 @@ def test_gtsams_legged_estimators_run_on_the_same_log_in_the_same_layout(trot, m
     assert np.linalg.norm(est.qpos[-1, :2] - est.qpos[0, :2]) > travel / 2  # it moved
     tilt, _ = _tilt_and_yaw_deg(est.qpos, truth)
     assert tilt < 2.0
+    # the base's velocity is the estimator's own state, not its poses' finite differences
+    # (those are 0.2 m/s off on this trot)
+    h = 1e-9 * float(np.median(np.diff(t_true)))
+    v_true = np.gradient(q_true[:, :3], h, axis=0)
+    v_true = v_true[np.clip(np.searchsorted(t_true, est.t_ns), 0, len(t_true) - 1)]
+    assert np.sqrt(np.mean((est.qvel[5:-5, :3] - v_true[5:-5]) ** 2)) < 0.12
+
+
+def test_a_start_pose_places_the_estimate_and_the_summary_names_what_is_unobserved(
+    trot_files, tmp_path
+):
+    """--start-pose X Y YAW_DEG: the estimate starts there (its first knot), moves as the robot
+    does, turned by the yaw; summary.json says x, y and yaw are unobservable from there."""
+    log, config = trot_files
+    out = tmp_path / "est"
+    argv = ["estimate", str(log), "--config", str(config), "--out", str(out), "--quiet"]
+    assert main([*argv, "--start-pose", "1", "-2", "90"]) == 0
+    est = read_state_topics(out / "estimate.mcap", "/estimate").odometry["base"].values
+    truth = read_state_topics(log, "/ground_truth").odometry["base"].values
+    np.testing.assert_allclose(est[0, :2], [1.0, -2.0], atol=1e-4)
+    _, yaw = _tilt_and_yaw_deg(est[:1], truth[:1])
+    assert abs(yaw[0] - 90.0) < 0.1
+    moved, moved_true = est[-1, :2] - est[0, :2], truth[-1, :2] - truth[0, :2]
+    np.testing.assert_allclose(
+        moved, [-moved_true[1], moved_true[0]], atol=0.1 * np.linalg.norm(moved_true)
+    )
+    warnings = json.loads((out / "summary.json").read_text())["warnings"]
+    line = next(w for w in warnings if w.startswith("no mocap:"))
+    assert "(x 1.000 m, y -2.000 m, yaw 90.0°: the config's start_pose or --start-pose)" in line
+
+
+@pytest.mark.parametrize(
+    ("entry", "message"),
+    [
+        ('start_pose = { x = "one" }', "start_pose.x: expected a number, got 'one' (str)"),
+        ("start_pose = { z = 1.0 }", "start_pose.z: unknown key; allowed keys: x, y, yaw_deg"),
+    ],
+)
+def test_a_bad_start_pose_is_one_line_naming_the_key(trot_files, tmp_path, entry, message):
+    _, config = trot_files
+    bad = tmp_path / "bad.toml"
+    text = config.read_text()
+    bad.write_text(text.replace("[streams.", entry + "\n\n[streams.", 1))
+    with pytest.raises(ConfigError, match=re.escape(f"{bad}: {message}")):
+        load_config(bad)
+
+
+def test_a_start_pose_on_a_fixed_base_says_there_is_none(tmp_path):
+    config = tmp_path / "hinge.toml"
+    config.write_text(
+        'model = "single_joint"\nstart_pose = { x = 1.0 }\n'
+        '[streams.joints]\ntype = "joint_state"\ntopic = "/joint_states"\njoints = "model"\n'
+    )
+    with pytest.raises(ConfigError, match="start_pose: the model has no free joint"):
+        load_config(config)

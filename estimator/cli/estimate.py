@@ -111,6 +111,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "best_across_gaps: both only where the measurements have a gap; measurements: one "
         "solve)",
     )
+    parser.add_argument(
+        "--start-pose",
+        nargs=3,
+        type=float,
+        metavar=("X", "Y", "YAW_DEG"),
+        help="where a log without mocap starts: the free base's x, y (m) and heading (°), "
+        "which the estimate is relative to (default: config start_pose, else the model's "
+        "home keyframe)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -122,6 +131,8 @@ def run(args: argparse.Namespace) -> int:
         return _run_fleet(args)
     args.log = args.log[0]
     config = load_config(args.config)
+    if args.start_pose is not None:
+        config = config.starting_at(*args.start_pose)
     settings = Settings.from_config(config)
     overrides = {
         "method": args.method,
@@ -230,6 +241,8 @@ def _run_fleet(args: argparse.Namespace) -> int:
     ):
         if value is not None:
             options += [flag, str(value)]
+    if args.start_pose is not None:
+        options += ["--start-pose", *map(str, args.start_pose)]
     workers = f"{args.workers} workers" if args.workers else "a worker per core"
     where = (
         f"the Ray cluster at {args.ray_address}" if args.ray_address else f"a local Ray, {workers}"
