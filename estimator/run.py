@@ -115,7 +115,10 @@ def smooth(
     T = len(t_ns)
     filled = np.zeros(T, dtype=bool)  # knots the measurements' start interpolates in a gap
     qpos0 = initial_trajectory(model, measurements, t_ns, filled=filled)
-    W = max(8, round(settings.window_s / h))
+    # the physics without mocap: short windows, the heading the gyro's (docs/no_mocap.md)
+    short = settings.method == "physics" and unanchored(model, measurements)
+    window_s = settings.window_s_no_mocap if short else settings.window_s
+    W = max(8, round(window_s / h))
     overlap = min(W // 2, max(4, round(settings.overlap_s / h)))
     qpos = qpos0.copy()
     nb = None

@@ -96,6 +96,12 @@ class Settings:
         choices=("huber", "cauchy"),
     )
     window_s: float = setting(4.0, "length of one smoothing window, s", positive=True)
+    window_s_no_mocap: float = setting(
+        0.5,
+        "length of one physics window of a log without mocap, s (the stream's lag: over a "
+        "longer one the model's mass error steers the heading through the gyro's bias)",
+        positive=True,
+    )
     overlap_s: float = setting(
         0.5, "look-ahead of a window: the knots past those it keeps, re-solved by the next, s"
     )

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import re
+import subprocess
+import sys
 from dataclasses import replace
 
 import numpy as np
@@ -88,7 +90,7 @@ def test_the_estimate_holds_its_start_pose_and_reports_what_it_cannot_see(trot):
     stay as certain as they start; the base follows the robot."""
     config, measurements, t_true, q_true = trot
     model = config.load_model()
-    est, _ = estimate(config, measurements, Settings.from_config(config))
+    est, summary = estimate(config, measurements, Settings.from_config(config))
     truth = _truth_at(est.t_ns, t_true, q_true)
     home = model.key_qpos[0] if model.nkey else model.qpos0
     np.testing.assert_allclose(est.qpos[0, :2], home[:2], atol=1e-4)
@@ -101,6 +103,8 @@ def test_the_estimate_holds_its_start_pose_and_reports_what_it_cannot_see(trot):
     travel = np.sum(np.linalg.norm(np.diff(truth[:, :2], axis=0), axis=1))
     error = np.linalg.norm(est.qpos[:, :2] - truth[:, :2], axis=1)
     assert error.max() < 0.1 * travel  # it moved with the robot
+    # in windows of window_s_no_mocap (0.5 s; the log is 2 s), not window_s (4 s)
+    assert len(summary.window_starts) >= 4
 
 
 @pytest.mark.parametrize("method", ["gtsam-legged-ekf", "gtsam-legged-smoother"])
@@ -149,6 +153,25 @@ def test_a_start_pose_places_the_estimate_and_the_summary_names_what_is_unobserv
     warnings = json.loads((out / "summary.json").read_text())["warnings"]
     line = next(w for w in warnings if w.startswith("no mocap:"))
     assert "(x 1.000 m, y -2.000 m, yaw 90.0°: the config's start_pose or --start-pose)" in line
+
+
+def test_the_stream_holds_its_start_pose_too(trot_files, tmp_path):
+    """`physfuse stream --start-pose`: the live estimate's first smoothed knot is there and the
+    base moves as the robot does, turned by the yaw (the first window holds x, y, yaw)."""
+    log, config = trot_files
+    out = tmp_path / "live.mcap"
+    argv = [sys.executable, "-m", "estimator.cli", "stream", "--config", str(config)]
+    argv += ["--source", str(log), "--out", str(out), "--start-pose", "1", "-2", "90", "--quiet"]
+    assert subprocess.run(argv, capture_output=True, timeout=600).returncode == 0
+    est = read_state_topics(out, "/estimate_smoothed").odometry["base"].values
+    truth = read_state_topics(log, "/ground_truth").odometry["base"].values
+    np.testing.assert_allclose(est[0, :2], [1.0, -2.0], atol=1e-3)
+    _, yaw = _tilt_and_yaw_deg(est[:1], truth[:1])
+    assert abs(yaw[0] - 90.0) < 0.1
+    moved, moved_true = est[-1, :2] - est[0, :2], truth[-1, :2] - truth[0, :2]
+    np.testing.assert_allclose(
+        moved, [-moved_true[1], moved_true[0]], atol=0.1 * np.linalg.norm(moved_true)
+    )
 
 
 @pytest.mark.parametrize(

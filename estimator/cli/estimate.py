@@ -99,7 +99,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--path", choices=CHOICES["path"], help="physics path (default: config/native)"
     )
-    parser.add_argument("--window", type=float, help="window length in s (default 4)")
+    parser.add_argument(
+        "--window", type=float, help="window length in s (default 4; 0.5 for a log without mocap)"
+    )
     parser.add_argument(
         "--iterations", type=int, help="Levenberg–Marquardt iterations per solve (default 30)"
     )
@@ -111,6 +113,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "best_across_gaps: both only where the measurements have a gap; measurements: one "
         "solve)",
     )
+    add_start_pose_argument(parser)
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def add_start_pose_argument(parser: argparse.ArgumentParser) -> None:
+    """--start-pose X Y YAW_DEG (estimate, stream): `Config.starting_at`."""
     parser.add_argument(
         "--start-pose",
         nargs=3,
@@ -120,7 +128,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "which the estimate is relative to (default: config start_pose, else the model's "
         "home keyframe)",
     )
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -138,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
         "method": args.method,
         "path": args.path,
         "window_s": args.window,
+        "window_s_no_mocap": args.window,
         "max_iterations": args.iterations,
         "init": args.init,
     }

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from estimator.cli.estimate import add_start_pose_argument
 from estimator.config import load_config
 from estimator.errors import ConfigError, LogError
 from estimator.io.live import DecodingReader, McapStreamServer, check_source
@@ -105,11 +106,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--stats", type=Path, help="JSON of the run: latencies, backlog, solve times, counts"
     )
+    add_start_pose_argument(parser)
     parser.add_argument("--quiet", action="store_true", help="no status line")
 
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
+    if args.start_pose is not None:
+        config = config.starting_at(*args.start_pose)
     if args.lag <= 0 or args.stale <= 0 or args.iterations < 1:
         raise ConfigError("--lag and --stale must be > 0 s and --iterations ≥ 1")
     settings = replace(

@@ -27,6 +27,7 @@ from estimator.config import Config
 from estimator.estimate import Estimate
 from estimator.factors.marginal_prior import MarginalPrior
 from estimator.io.logs.measurements import Measurement
+from estimator.leg_odometry import START_POSITION_STD_M, START_YAW_STD_RAD, unanchored
 from estimator.problem import build_problem
 from estimator.run import collect_estimate, initial_trajectory
 from estimator.settings import Settings
@@ -97,6 +98,11 @@ class FixedLag:
         t_ns = self.t_ns(self.first, stop)
         problem = build_problem(self.config, measurements, self.settings, t_ns, self.compiled)
         qpos, bias = self._start(measurements, t_ns, problem.nb)
+        if not len(self.qpos) and unanchored(self.model, measurements):
+            # no mocap: the first window holds the start pose's x, y, yaw (as `run.smooth`)
+            self.prior = MarginalPrior.start_pose(
+                self.model, qpos, bias, problem.bias_prior, START_POSITION_STD_M, START_YAW_STD_RAD
+            )
         W = len(t_ns)
         n_shared = (4 if self.settings.jerk_prior_std > 0 else 3) - 1
         leave = W - self.lag_knots  # keys that leave the lag with this solve
