@@ -132,6 +132,19 @@ def test_gtsams_legged_estimators_run_on_the_same_log_in_the_same_layout(trot, m
     assert np.sqrt(np.mean((est.qvel[5:-5, :3] - v_true[5:-5]) ** 2)) < 0.12
 
 
+def _assert_placed_at_1_m2_90(est, log, atol):
+    """The base odometry `est` starts at x 1, y −2, yaw 90° (within atol m, 0.1°) and moves
+    as the log's true base does, turned by 90° (within 10% of the distance)."""
+    truth = read_state_topics(log, "/ground_truth").odometry["base"].values
+    np.testing.assert_allclose(est[0, :2], [1.0, -2.0], atol=atol)
+    _, yaw = _tilt_and_yaw_deg(est[:1], truth[:1])
+    assert abs(yaw[0] - 90.0) < 0.1
+    moved, moved_true = est[-1, :2] - est[0, :2], truth[-1, :2] - truth[0, :2]
+    np.testing.assert_allclose(
+        moved, [-moved_true[1], moved_true[0]], atol=0.1 * np.linalg.norm(moved_true)
+    )
+
+
 def test_a_start_pose_places_the_estimate_and_the_summary_names_what_is_unobserved(
     trot_files, tmp_path
 ):
@@ -142,14 +155,7 @@ def test_a_start_pose_places_the_estimate_and_the_summary_names_what_is_unobserv
     argv = ["estimate", str(log), "--config", str(config), "--out", str(out), "--quiet"]
     assert main([*argv, "--start-pose", "1", "-2", "90"]) == 0
     est = read_state_topics(out / "estimate.mcap", "/estimate").odometry["base"].values
-    truth = read_state_topics(log, "/ground_truth").odometry["base"].values
-    np.testing.assert_allclose(est[0, :2], [1.0, -2.0], atol=1e-4)
-    _, yaw = _tilt_and_yaw_deg(est[:1], truth[:1])
-    assert abs(yaw[0] - 90.0) < 0.1
-    moved, moved_true = est[-1, :2] - est[0, :2], truth[-1, :2] - truth[0, :2]
-    np.testing.assert_allclose(
-        moved, [-moved_true[1], moved_true[0]], atol=0.1 * np.linalg.norm(moved_true)
-    )
+    _assert_placed_at_1_m2_90(est, log, atol=1e-4)
     warnings = json.loads((out / "summary.json").read_text())["warnings"]
     line = next(w for w in warnings if w.startswith("no mocap:"))
     assert "(x 1.000 m, y -2.000 m, yaw 90.0°: the config's start_pose or --start-pose)" in line
@@ -164,14 +170,7 @@ def test_the_stream_holds_its_start_pose_too(trot_files, tmp_path):
     argv += ["--source", str(log), "--out", str(out), "--start-pose", "1", "-2", "90", "--quiet"]
     assert subprocess.run(argv, capture_output=True, timeout=600).returncode == 0
     est = read_state_topics(out, "/estimate_smoothed").odometry["base"].values
-    truth = read_state_topics(log, "/ground_truth").odometry["base"].values
-    np.testing.assert_allclose(est[0, :2], [1.0, -2.0], atol=1e-3)
-    _, yaw = _tilt_and_yaw_deg(est[:1], truth[:1])
-    assert abs(yaw[0] - 90.0) < 0.1
-    moved, moved_true = est[-1, :2] - est[0, :2], truth[-1, :2] - truth[0, :2]
-    np.testing.assert_allclose(
-        moved, [-moved_true[1], moved_true[0]], atol=0.1 * np.linalg.norm(moved_true)
-    )
+    _assert_placed_at_1_m2_90(est, log, atol=1e-3)
 
 
 @pytest.mark.parametrize(
