@@ -5,7 +5,9 @@ on its slice of the grid widened by `overlap` seconds on both sides (the measure
 too), and the chunks are joined by keeping each one's own knots: at a join the estimate
 comes from a chunk that has seen `overlap` seconds of log past it, where the influence of
 the chunk's edge has died out. The physics' contact softness is fitted once, on the log's
-start (`run.softness_fitted`), and every chunk takes it.
+start (`run.softness_fitted`), and every chunk takes it. Without mocap every chunk starts at
+the start pose: each is then turned about world z and shifted to continue the one before
+(`placed_after`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import mujoco
 import numpy as np
 
 from estimator.batch import estimate
@@ -25,6 +28,8 @@ from estimator.estimate import Estimate
 from estimator.fleet import as_task, ray_session
 from estimator.io.logs import Measurement
 from estimator.knots import knot_grid
+from estimator.leg_odometry import free_base, unanchored
+from estimator.rotations import quat_mul
 from estimator.run import Summary, largest_residuals, samples_within, softness_fitted
 from estimator.settings import Settings
 
@@ -73,6 +78,13 @@ def estimate_chunked(
             parts.append((est, summary, slice(a - lo, b - lo)))
             if progress:
                 progress(i + 1, len(cuts))
+    model = config.load_model()
+    if unanchored(model, measurements):  # x, y, yaw: each chunk's own, from the start pose
+        for i in range(1, len(parts)):
+            (prev, _, kept_prev), (est, summary, kept) = parts[i - 1], parts[i]
+            join_at = kept_prev.stop - kept_prev.start  # knot cuts[i][0]: in both chunks
+            est = placed_after(model, est, kept.start, prev, kept_prev.start + join_at)
+            parts[i] = (est, summary, kept)
     est = join([(e, kept) for e, _, kept in parts])
     summaries = [s for _, s, _ in parts]
     offsets = [a for a, _ in cuts]
@@ -129,6 +141,69 @@ def estimate_chunk(
     config = load_config(config_path)
     window = {k: samples_within(m, int(knots[0]), int(knots[-1])) for k, m in measurements.items()}
     return estimate(config, window, settings, knots=np.asarray(knots))
+
+
+def placed_after(
+    model: mujoco.MjModel, est: Estimate, k: int, prev: Estimate, k_prev: int
+) -> Estimate:
+    """`est` turned about world z by ψ and shifted horizontally by t so that its free base
+    at knot k has prev's x, y and heading at knot k_prev: q ← R_z(ψ) ⊗ q, p ← R_z(ψ) p + t on
+    every free joint, the free joints' world-frame rows (linear velocity, acceleration, force)
+    and the contacts turned with them; the physics is unchanged (gravity along z, a level
+    floor). σ of x, y and yaw grows by prev's there. (The whitened residuals stay as solved.)"""
+    _, adr = free_base(model)
+    w, _, _, z = quat_mul(
+        prev.qpos[k_prev, adr + 3 : adr + 7], _conjugate(est.qpos[k, adr + 3 : adr + 7])
+    )
+    psi = 2.0 * np.arctan2(z, w)  # the relative rotation's twist about z
+    c, s = np.cos(psi), np.sin(psi)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    t = prev.qpos[k_prev, adr : adr + 3] - R @ est.qpos[k, adr : adr + 3]
+    t[2] = 0.0
+    q_z = np.array([np.cos(psi / 2), 0.0, 0.0, np.sin(psi / 2)])
+    qpos, std = est.qpos.copy(), est.qpos_std.copy()
+    qvel, qacc = est.qvel.copy(), est.qacc.copy()
+    qfrc_inverse, qfrc_known = est.qfrc_inverse.copy(), est.qfrc_known.copy()
+    base_dof = -1
+    for j in np.flatnonzero(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE):
+        a, dof = int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j])
+        base_dof = dof if a == adr else base_dof
+        qpos[:, a : a + 3] = qpos[:, a : a + 3] @ R.T + t
+        qpos[:, a + 3 : a + 7] = quat_mul(q_z, qpos[:, a + 3 : a + 7])
+        for x in (
+            qvel,
+            qacc,
+            qfrc_inverse,
+            qfrc_known,
+        ):  # a free joint's translational dofs are in the world frame
+            x[:, dof : dof + 3] = x[:, dof : dof + 3] @ R.T
+        variance = std[:, dof : dof + 2] ** 2  # x, y: R diag(σ²) Rᵀ's diagonal
+        std[:, dof : dof + 2] = np.sqrt(variance @ (R[:2, :2] ** 2).T)
+    for d in (base_dof, base_dof + 1, base_dof + 5):  # x, y and (about the body z) yaw
+        std[:, d] = np.hypot(std[:, d], prev.qpos_std[k_prev, d])
+    constraints = tuple(
+        replace(
+            c,
+            contacts=replace(
+                c.contacts, pos=c.contacts.pos @ R.T + t, frame=c.contacts.frame @ R.T
+            ),
+        )
+        for c in est.constraints
+    )
+    return replace(
+        est,
+        qpos=qpos,
+        qvel=qvel,
+        qacc=qacc,
+        qfrc_inverse=qfrc_inverse,
+        qfrc_known=qfrc_known,
+        qpos_std=std,
+        constraints=constraints,
+    )
+
+
+def _conjugate(q: np.ndarray) -> np.ndarray:
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
 
 
 def join(parts: list[tuple[Estimate, slice]]) -> Estimate:

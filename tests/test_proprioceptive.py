@@ -173,6 +173,26 @@ def test_the_stream_holds_its_start_pose_too(trot_files, tmp_path):
     _assert_placed_at_1_m2_90(est, log, atol=1e-3)
 
 
+def test_chunks_without_mocap_continue_each_other(trot_files, tmp_path):
+    """--chunk 1 on 2 Ray workers: every chunk starts at the start pose and is then turned and
+    shifted to continue the one before: the base follows the robot across the joins without a
+    jump there (left at the start pose, it jumped 17 mm back at the first join)."""
+    log, config = trot_files
+    out = tmp_path / "chunked"
+    argv = ["estimate", str(log), "--config", str(config), "--out", str(out), "--quiet"]
+    assert main([*argv, "--chunk", "1", "--chunk-overlap", "0.5", "--workers", "2"]) == 0
+    est = read_state_topics(out / "estimate.mcap", "/estimate").odometry["base"]
+    truth = read_state_topics(log, "/ground_truth").odometry["base"]
+    at = np.clip(np.searchsorted(truth.t_ns, est.t_ns), 0, len(truth.t_ns) - 1)
+    p, p_true = est.values[:, :2], truth.values[at, :2]
+    travel = np.sum(np.linalg.norm(np.diff(p_true, axis=0), axis=1))
+    assert np.linalg.norm(p - p_true, axis=1).max() < 0.1 * travel
+    steps, true_steps = np.diff(p, axis=0), np.diff(p_true, axis=0)
+    assert np.abs(steps - true_steps).max() < 0.002  # no jump of the base between two knots
+    _, yaw = _tilt_and_yaw_deg(est.values, truth.values[at])
+    assert np.abs(yaw).max() < 2.0
+
+
 @pytest.mark.parametrize(
     ("entry", "message"),
     [
