@@ -29,7 +29,7 @@ from estimator.fleet import as_task, ray_session
 from estimator.io.logs import Measurement
 from estimator.knots import knot_grid
 from estimator.leg_odometry import free_base, unanchored
-from estimator.rotations import quat_mul
+from estimator.rotations import heading, quat_mul
 from estimator.run import Summary, largest_residuals, samples_within, softness_fitted
 from estimator.settings import Settings
 
@@ -152,10 +152,9 @@ def placed_after(
     and the contacts turned with them; the physics is unchanged (gravity along z, a level
     floor). σ of x, y and yaw grows by prev's there. (The whitened residuals stay as solved.)"""
     _, adr = free_base(model)
-    w, _, _, z = quat_mul(
-        prev.qpos[k_prev, adr + 3 : adr + 7], _conjugate(est.qpos[k, adr + 3 : adr + 7])
+    psi = float(
+        heading(prev.qpos[k_prev, adr + 3 : adr + 7]) - heading(est.qpos[k, adr + 3 : adr + 7])
     )
-    psi = 2.0 * np.arctan2(z, w)  # the relative rotation's twist about z
     c, s = np.cos(psi), np.sin(psi)
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     t = prev.qpos[k_prev, adr : adr + 3] - R @ est.qpos[k, adr : adr + 3]
@@ -200,10 +199,6 @@ def placed_after(
         qpos_std=std,
         constraints=constraints,
     )
-
-
-def _conjugate(q: np.ndarray) -> np.ndarray:
-    return q * np.array([1.0, -1.0, -1.0, -1.0])
 
 
 def join(parts: list[tuple[Estimate, slice]]) -> Estimate:

@@ -100,6 +100,7 @@ import mujoco
 import numpy as np
 
 from estimator.errors import ConfigError
+from estimator.rotations import heading
 from physics.errors import PhysicsError
 from physics.model import MODEL_DIR, bundled_models, load_model
 
@@ -313,8 +314,7 @@ def _set_start_pose(
     adr = int(model.jnt_qposadr[j])
     key = next((k for k in spec.keys if k.name == "home"), None)
     qpos = np.array(key.qpos if key is not None and len(key.qpos) else model.qpos0, float)
-    w, x, y, z = qpos[adr + 3 : adr + 7]
-    turn = start[2] - math.atan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
+    turn = start[2] - float(heading(qpos[adr + 3 : adr + 7]))
     quat = np.empty(4)
     mujoco.mju_mulQuat(
         quat, np.array([math.cos(turn / 2), 0, 0, math.sin(turn / 2)]), qpos[adr + 3 : adr + 7]

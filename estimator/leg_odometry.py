@@ -32,7 +32,7 @@ import numpy as np
 from estimator.config import MOCAP_KINDS, Config
 from estimator.io.logs.measurements import Measurement
 from estimator.knots import interpolated_at_knots
-from estimator.rotations import quat_mul
+from estimator.rotations import heading, quat_conj, quat_mul
 
 START_POSITION_STD_M = 1e-5  # the start pose's x, y and yaw: the reference the estimate
 START_YAW_STD_RAD = 1e-5  # is relative to (`MarginalPrior.start_pose`)
@@ -128,7 +128,7 @@ def body_in_base(
 def base_orientations(body_quat: np.ndarray, rel_quat: np.ndarray) -> np.ndarray:
     """(T, 4) the base's orientation R_body ⊗ Q_rel⁻¹ from a body's, R_body (T, 4), and its
     orientation on the base, Q_rel (T, 4: `body_in_base`)."""
-    return quat_mul(body_quat, rel_quat * np.array([1.0, -1.0, -1.0, -1.0]))
+    return quat_mul(body_quat, quat_conj(rel_quat))
 
 
 def unobserved_line(model: mujoco.MjModel, qpos: np.ndarray, std: np.ndarray, source: str) -> str:
@@ -136,8 +136,7 @@ def unobserved_line(model: mujoco.MjModel, qpos: np.ndarray, std: np.ndarray, so
     pose (from `source`), their σ at the first and the last knot (std: (T, nv) marginal σ)."""
     base, adr = free_base(model)
     dof = int(model.jnt_dofadr[model.body_jntadr[base]])
-    w, x, y, z = qpos[0, adr + 3 : adr + 7]
-    yaw = np.degrees(np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z)))
+    yaw = np.degrees(heading(qpos[0, adr + 3 : adr + 7]))
     xy = np.hypot(std[:, dof], std[:, dof + 1])
     spin = np.degrees(std[:, dof + 5])  # about the base's z axis: ≈ the heading's
     return (

@@ -2,6 +2,8 @@
 SO(3) operations the estimator, the simulator, the filters and the evaluation share.
 
     quat_mul(a, b)            a ⊗ b
+    quat_conj(q)              q⁻¹ of a unit quaternion
+    heading(q)                the yaw ψ of R = R_z(ψ) R_y(θ) R_x(φ); R_z(δ) ⊗ q adds δ to it
     quat_exp(φ)               Exp(φ), rotation vector → quaternion
     quat_log_between(q1, q2)  Log(q1⁻¹ ⊗ q2), the short way round (MuJoCo's mju_subQuat)
     quat_errors(pred, meas)   Log(meas⁻¹ ⊗ pred) and its Jacobian in pred
@@ -33,6 +35,17 @@ def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         ],
         axis=-1,
     )
+
+
+def quat_conj(q: np.ndarray) -> np.ndarray:
+    """q⁻¹ = (w, −x, −y, −z) of (..., 4) unit quaternions."""
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def heading(q: np.ndarray) -> np.ndarray:
+    """The heading (yaw about world z, rad) of (..., 4) quaternions: ψ of R_z(ψ) R_y(θ) R_x(φ)."""
+    w, x, y, z = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
+    return np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
 
 
 def quat_exp(rotvec: np.ndarray) -> np.ndarray:

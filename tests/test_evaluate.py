@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer
+from scipy.spatial.transform import Rotation
 
 from estimator.cli import main
 from estimator.evaluate import (
@@ -25,7 +26,7 @@ from estimator.evaluate import (
     within,
 )
 from estimator.io.state_topics import Series, StateTopics
-from estimator.rotations import rotation_angles
+from estimator.rotations import heading, quat_conj, quat_mul, rotation_angles
 from physics.model import load_model
 
 MS = 1_000_000
@@ -47,6 +48,17 @@ def test_rotation_angle_is_the_short_way_and_ignores_the_quaternion_sign():
     assert rotation_angles(turned, identity)[0] == pytest.approx(0.1)
     assert rotation_angles(-turned, identity)[0] == pytest.approx(0.1)
     assert rotation_angles(turned, turned)[0] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_turn_about_world_z_adds_to_the_heading_of_a_tilted_orientation():
+    """heading(R_z(δ) ⊗ q) = heading(q) + δ (mod 2π), as scipy's ZYX yaw; q ⊗ q⁻¹ = 1."""
+    q = Rotation.from_euler("ZYX", [0.3, 0.2, -0.4]).as_quat(scalar_first=True)
+    assert heading(q) == pytest.approx(0.3)
+    for delta in (0.5, 3.0, -2.0):
+        turn = np.array([np.cos(delta / 2), 0.0, 0.0, np.sin(delta / 2)])
+        expected = np.angle(np.exp(1j * (0.3 + delta)))
+        assert heading(quat_mul(turn, q)) == pytest.approx(expected)
+    np.testing.assert_allclose(quat_mul(q, quat_conj(q)), [1.0, 0.0, 0.0, 0.0], atol=1e-15)
 
 
 def test_position_nees_of_known_errors_and_covariances():
