@@ -19,7 +19,7 @@ import mujoco
 import numpy as np
 
 from estimator.io.state_topics import Series, StateTopics, at_times
-from estimator.rotations import rotation_angles
+from estimator.rotations import heading, rotation_angles
 from physics.model import weight as model_weight
 
 TRIM_KNOTS = 2
@@ -274,7 +274,7 @@ def drift(e: np.ndarray, g: np.ndarray) -> dict[str, float]:
     horizontal position error over it (%) and of the yaw error per metre of it; the tilt."""
     path = float(np.sum(np.linalg.norm(np.diff(g[:, :2], axis=0), axis=1)))
     growth = (e[-1, :2] - g[-1, :2]) - (e[0, :2] - g[0, :2])
-    yaw = _yaw(e[:, 3:7]) - _yaw(g[:, 3:7])
+    yaw = heading(e[:, 3:7]) - heading(g[:, 3:7])
     yaw_growth = float(np.angle(np.exp(1j * (yaw[-1] - yaw[0]))))  # wrapped to ±π
     up_e, up_g = _up(e[:, 3:7]), _up(g[:, 3:7])
     tilt = np.arctan2(np.linalg.norm(np.cross(up_e, up_g), axis=1), np.sum(up_e * up_g, axis=1))
@@ -290,12 +290,6 @@ def _up(quat: np.ndarray) -> np.ndarray:
     """(n, 3) the body's z axis in the world, from quaternions (n, 4) w x y z."""
     w, x, y, z = quat.T
     return np.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], axis=1)
-
-
-def _yaw(quat: np.ndarray) -> np.ndarray:
-    """(n,) the heading of the body's x axis in the world, rad."""
-    w, x, y, z = quat.T
-    return np.arctan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
 
 
 def position_nees(errors: np.ndarray, covariance: np.ndarray) -> np.ndarray:
