@@ -169,12 +169,8 @@ def placed_after(
         base_dof = dof if a == adr else base_dof
         qpos[:, a : a + 3] = qpos[:, a : a + 3] @ R.T + t
         qpos[:, a + 3 : a + 7] = quat_mul(q_z, qpos[:, a + 3 : a + 7])
-        for x in (
-            qvel,
-            qacc,
-            qfrc_inverse,
-            qfrc_known,
-        ):  # a free joint's translational dofs are in the world frame
+        # a free joint's translational dofs are in the world frame
+        for x in (qvel, qacc, qfrc_inverse, qfrc_known):
             x[:, dof : dof + 3] = x[:, dof : dof + 3] @ R.T
         variance = std[:, dof : dof + 2] ** 2  # x, y: R diag(σ²) Rᵀ's diagonal
         std[:, dof : dof + 2] = np.sqrt(variance @ (R[:2, :2] ** 2).T)
@@ -182,12 +178,12 @@ def placed_after(
         std[:, d] = np.hypot(std[:, d], prev.qpos_std[k_prev, d])
     constraints = tuple(
         replace(
-            c,
+            each,
             contacts=replace(
-                c.contacts, pos=c.contacts.pos @ R.T + t, frame=c.contacts.frame @ R.T
+                each.contacts, pos=each.contacts.pos @ R.T + t, frame=each.contacts.frame @ R.T
             ),
         )
-        for c in est.constraints
+        for each in est.constraints
     )
     return replace(
         est,
