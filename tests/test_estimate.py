@@ -112,6 +112,28 @@ def test_banded_normal_equations_and_marginals_match_the_dense_system():
             lin.close()
 
 
+def test_the_normal_equations_do_not_depend_on_the_number_of_threads(monkeypatch):
+    """Each thread sums its own keys' blocks, row by row in one order: 1, 2 or 3 threads give
+    the same bits (split by rows, the blocks at the seams were summed in another order, and
+    an estimate moved in the ninth digit with PHYSFUSE_THREADS)."""
+    import estimator.solver.banded as banded
+
+    problem, qpos, bias = _window("quadruped_trot", 200, 40)
+    lin = Linearizer(problem)
+    try:
+        blocks = lin.linearize(qpos, bias)
+        systems = []
+        for threads in (1, 2, 3):
+            monkeypatch.setattr(banded, "THREADS", threads)
+            systems.append(BandedSystem.of(blocks, lin, bias))
+    finally:
+        lin.close()
+    for other in systems[1:]:
+        assert np.array_equal(other.diag, systems[0].diag)
+        assert np.array_equal(other.g, systems[0].g)
+        assert all(np.array_equal(a, b) for a, b in zip(other.lower, systems[0].lower, strict=True))
+
+
 def test_marginal_std_is_the_inverse_of_a_stiff_system():
     """A position measured by mocap (120 Hz, σ 0.5 mm) and an accelerometer at every knot
     (500 Hz, σ 0.03 m/s²): the accelerometer's rows put ≈4e14 on H's diagonal, the mocap's

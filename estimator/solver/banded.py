@@ -92,55 +92,72 @@ class BandedSystem:
         # the priors' rows reach one dof (or one rotation's 3) per key: JᵀJ by dof groups
         vec = lin.vector_dofs
 
-        def products(c: range) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
-            """This chunk of knots' share of (diag, lower, g), in its own arrays (threads)."""
+        def products(keys: range) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+            """The (diag, lower, g) blocks of `keys` (zero elsewhere), in their own arrays
+            (threads). Every block is summed in the same order whatever the split of the keys
+            (the rows that reach it, factor by factor): the result does not depend on the
+            number of threads."""
             diag = np.zeros((T, nz, nz))
             lower = [np.zeros((T - d, nz, nz)) for d in range(1, span)]
             g = np.zeros((T, nz))
             H = [diag, *lower]  # H[a − b][key of b]: H_{k+a−b, k}
-            i0 = c.start
-            i1 = max(i0, min(c.stop, n_rows))  # (rows past `until` are 0: skipped)
+
+            def reaching(off: int, stop: int) -> tuple[int, int]:
+                """The rows i < stop whose key i + off is one of `keys`."""
+                i0 = max(0, keys.start - off)
+                return i0, max(i0, min(stop, keys.stop - off))
+
+            lo = max(0, keys.start - span + 1)  # every row that reaches one of the keys
+            hi = max(lo, min(keys.stop, n_rows))
             for r, reach, n_cols, runs in parts:
-                rc = r[i0:i1]
+                rc = r[lo:hi]
                 if len(reach) == 1:
-                    Jc = reach[0][0][i0:i1]
+                    Jc = reach[0][0][lo:hi]
                 else:
-                    Jc = np.zeros((i1 - i0, r.shape[1], n_cols))
+                    Jc = np.zeros((hi - lo, r.shape[1], n_cols))
                     row = 0
                     for J, at in reach:
-                        Jc[:, row : row + J.shape[1], at] = J[i0:i1]
+                        Jc[:, row : row + J.shape[1], at] = J[lo:hi]
                         row += J.shape[1]
                 for a, in_a, z_a in runs:
                     Ja = Jc[:, :, in_a]
-                    g[i0 + a : i1 + a, z_a] += np.einsum("kmc,km->kc", Ja, rc)
+                    i0, i1 = reaching(a, hi)
+                    i0 = max(i0, lo)
+                    if i1 > i0:
+                        sel = slice(i0 - lo, i1 - lo)
+                        g[i0 + a : i1 + a, z_a] += np.einsum("kmc,km->kc", Ja[sel], rc[sel])
                     for b, in_b, z_b in runs:
-                        if b <= a:
+                        i0, i1 = reaching(b, hi)
+                        i0 = max(i0, lo)
+                        if b <= a and i1 > i0:
+                            sel = slice(i0 - lo, i1 - lo)
                             H[a - b][i0 + b : i1 + b, z_a, z_b] += (
-                                Ja.transpose(0, 2, 1) @ Jc[:, :, in_b]
+                                Ja[sel].transpose(0, 2, 1) @ Jc[sel][:, :, in_b]
                             )
             for r, C in dofwise:
                 n = C.shape[1]  # keys reached (the prior 3, the jerk prior 4)
                 # rows reaching key i + a ≤ T − 1 (the jerk prior's last row, zero, reaches T)
-                rows = [slice(i0, min(i1, T - a)) for a in range(n)]
-                Jv = [C[rows[a], a, vec, 0] for a in range(n)]  # (knots, vector dofs)
+                last = [min(n_rows, T - a) for a in range(n)]
                 for a in range(n):
-                    m = rows[a].stop - i0
-                    g[i0 + a : i0 + a + m, vec] += Jv[a] * r[rows[a], vec]
+                    i0, i1 = reaching(a, last[a])
+                    g[i0 + a : i1 + a, vec] += C[i0:i1, a, vec, 0] * r[i0:i1, vec]
                     for b in range(a + 1):
+                        i0, i1 = reaching(b, last[a])
                         diagonal = H[a - b].reshape(-1, nz * nz)[:, :: nz + 1]  # a view
-                        diagonal[i0 + b : i0 + b + m, vec] += Jv[a] * Jv[b][:m]
+                        diagonal[i0 + b : i1 + b, vec] += C[i0:i1, a, vec, 0] * C[i0:i1, b, vec, 0]
                 for d in lin.rotation_dofs:  # the 3 rows of a rotation on its 3 columns
                     rot = slice(d, d + 3)
-                    Jr = [C[rows[a], a, rot] for a in range(n)]  # (knots, 3, 3)
                     for a in range(n):
-                        m = rows[a].stop - i0
-                        JrT = Jr[a].transpose(0, 2, 1)
-                        g[i0 + a : i0 + a + m, rot] += (JrT @ r[rows[a], rot, None])[:, :, 0]
+                        i0, i1 = reaching(a, last[a])
+                        JrT = C[i0:i1, a, rot].transpose(0, 2, 1)
+                        g[i0 + a : i1 + a, rot] += (JrT @ r[i0:i1, rot, None])[:, :, 0]
                         for b in range(a + 1):
-                            H[a - b][i0 + b : i0 + b + m, rot, rot] += JrT @ Jr[b][:m]
+                            i0, i1 = reaching(b, last[a])
+                            JrT = C[i0:i1, a, rot].transpose(0, 2, 1)
+                            H[a - b][i0 + b : i1 + b, rot, rot] += JrT @ C[i0:i1, b, rot]
             return diag, lower, g
 
-        shares = list(lin.pool.map(products, chunks(0, K, THREADS)))
+        shares = list(lin.pool.map(products, chunks(0, T, THREADS)))
         diag, lower, g = shares[0]
         for more_diag, more_lower, more_g in shares[1:]:
             diag += more_diag
