@@ -9,6 +9,7 @@ impulses at every knot; the measurements come from a real ROS 2 MCAP log read by
 from __future__ import annotations
 
 import socket
+import time
 import urllib.request
 from collections import defaultdict
 from dataclasses import dataclass, field, replace
@@ -525,6 +526,11 @@ def test_serve_starts_a_grpc_server_and_a_web_viewer_on_localhost_and_stops(
         assert visualize.web_viewer_url(uri, "127.0.0.1", web_port) in out
     finally:
         visualize.stop_serving()
+    # the server shuts down on its own thread once disconnected: within 10 s, even on a busy
+    # machine (a full `make test` once saw it still listening right after stop_serving())
+    deadline = time.monotonic() + 10.0
+    while _listening(grpc_port) and time.monotonic() < deadline:
+        time.sleep(0.05)
     assert not _listening(grpc_port)
     assert "/world/contacts" in read_recording(path)  # the file is complete too
 
