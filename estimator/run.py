@@ -116,7 +116,8 @@ def smooth(
     filled = np.zeros(T, dtype=bool)  # knots the measurements' start interpolates in a gap
     qpos0 = initial_trajectory(model, measurements, t_ns, filled=filled)
     # the physics without mocap: short windows, the heading the gyro's (docs/no_mocap.md)
-    short = settings.method == "physics" and unanchored(model, measurements)
+    no_mocap = unanchored(model, measurements)  # x, y, yaw relative to the start pose
+    short = settings.method == "physics" and no_mocap
     window_s = settings.window_s_no_mocap if short else settings.window_s
     W = max(8, round(window_s / h))
     overlap = min(W // 2, max(4, round(settings.overlap_s / h)))
@@ -150,7 +151,7 @@ def smooth(
         if nb is None:
             nb = problem.nb
             bias = np.zeros((T, nb))
-            if unanchored(model, measurements):  # the estimate is relative to its start pose
+            if no_mocap:  # the estimate is relative to its start pose
                 prior = MarginalPrior.start_pose(
                     model, qpos, bias, problem.bias_prior, START_POSITION_STD_M, START_YAW_STD_RAD
                 )
@@ -235,7 +236,7 @@ def smooth(
             break
         s += a
     assert bias is not None
-    if unanchored(model, measurements):
+    if no_mocap:
         warnings.append(unobserved_line(model, qpos, std, start_source(config)))
     full = build_problem(config, measurements, settings, t_ns, compiled)
     est, summary = finish(
