@@ -52,8 +52,9 @@ from mcap.records import Schema
 from mcap.well_known import SchemaEncoding
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
-from mcap_ros2._dynamic import EncoderFunction, serialize_dynamic
+from mcap_ros2._dynamic import EncoderFunction
 
+from estimator.io import cdr
 from estimator.io.logs import ros2_types
 from estimator.io.logs.ros2_types import CONTACT_ARRAY
 from physics.result import Constraints
@@ -250,9 +251,9 @@ class Ros2Writer:
 
 @functools.cache
 def cdr_encoder(msg_type: str) -> tuple[str, EncoderFunction]:
-    """A ROS 2 message type's definition text (ros2msg) and its CDR encoder of field dicts."""
-    text = ros2_types.message_definition(msg_type)
-    return text, serialize_dynamic(msg_type, text)[msg_type]
+    """A ROS 2 message type's definition text (ros2msg) and its CDR encoder of field dicts
+    (`estimator.io.cdr`: mcap_ros2's bytes, planned once per type)."""
+    return ros2_types.message_definition(msg_type), cdr.encoder(msg_type)
 
 
 # -- message builders (numpy conventions in, ROS conventions out) ------------------------------
@@ -393,14 +394,18 @@ def contact_wrenches(
         point = contacts.pos[i]
         for geom, sign in ((contacts.geom[i][1], 1.0), (contacts.geom[i][0], -1.0)):
             body = int(model.geom_bodyid[geom])
-            arm = point - data.xpos[body]
+            a = point - data.xpos[body]  # arm × force, without np.cross's per-call overhead
+            moment = [
+                a[1] * force[2] - a[2] * force[1],
+                a[2] * force[0] - a[0] * force[2],
+                a[0] * force[1] - a[1] * force[0],
+            ]
             world[body, :3] += sign * force
-            world[body, 3:] += sign * (np.cross(arm, force) + torque)
-    out = np.zeros_like(world)
-    for body in range(model.nbody):
-        rot = data.xmat[body].reshape(3, 3)  # R_world_body
-        out[body, :3] = rot.T @ world[body, :3]
-        out[body, 3:] = rot.T @ world[body, 3:]
+            world[body, 3:] += sign * (np.asarray(moment) + torque)
+    rot = data.xmat.reshape(-1, 3, 3)  # R_world_body
+    out = np.empty_like(world)
+    out[:, :3] = np.einsum("bji,bj->bi", rot, world[:, :3])
+    out[:, 3:] = np.einsum("bji,bj->bi", rot, world[:, 3:])
     return out
 
 
