@@ -89,6 +89,9 @@ class KnotBatch:
             finally:
                 self.idle.put(engine)
 
+        if self.threads == 1:  # on the caller's thread: no hand-off for one engine
+            run(range(start, stop))
+            return
         list(self.pool.map(run, chunks(start, stop, pieces or 4 * self.threads)))
 
     def close(self) -> None:

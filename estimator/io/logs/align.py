@@ -49,15 +49,19 @@ def resample(m: Measurement, t_grid_ns: np.ndarray, *, max_gap_ns: int) -> np.nd
     out = np.full((len(grid), n_el, n_comp), np.nan)
     hold = m.kind in HOLD_KINDS
     quat = _quaternion_columns(m.components)
+    scalar = [k for k in range(n_comp) if quat is None or not quat.start <= k < quat.stop]
+    if scalar and np.isfinite(m.values[:, :, scalar]).all():  # every column at once
+        columns = m.values[:, :, scalar].reshape(len(m.t_ns), -1)
+        block = _resample_block(m.t_ns, columns, grid, max_gap_ns, hold, unit=False)
+        out[:, :, scalar] = block.reshape(len(grid), n_el, len(scalar))
+        scalar = []
     for e in range(n_el):
         if quat is not None:
             q = quat
             out[:, e, q] = _resample_block(
                 m.t_ns, m.values[:, e, q], grid, max_gap_ns, hold, unit=True
             )
-        for k in range(n_comp):
-            if quat is not None and quat.start <= k < quat.stop:
-                continue
+        for k in scalar:  # each column from its own finite samples
             out[:, e, k] = _resample_block(
                 m.t_ns, m.values[:, e, k : k + 1], grid, max_gap_ns, hold, unit=False
             )[:, 0]
