@@ -43,11 +43,15 @@ from estimator.run import WINDOW_MARGIN_NS
 from estimator.settings import Settings
 from estimator.solver.fixed_lag import FixedLag, LagStep
 
-# the most new keys one solve takes, as a fraction of the lag: a key that starts far off (a
-# mocap dropout longer than the lag, a backlog) needs about four solves of two iterations
-# before it leaves (Go2, a 1.28 s dropout in 250-knot batches: base 10.3 mm at a whole lag,
-# 4.9 mm at half, 0.41 mm at a quarter, as good as 30 iterations per solve: 0.39 mm)
-BACKLOG_STEP = 0.25
+# the most new keys one solve takes, as a fraction of the lag. A solve costs about as much
+# for 10 new keys as for 50 (the whole window is re-solved): at a quarter lag a live node
+# fell behind for good (real rate on this 2-core machine, replayed as
+# `benchmarks/stream_latency.py` does, two runs each: latency p50 2.1–3.5 s, p99 3.5–5.3 s),
+# at half a lag or a whole one it kept within 0.6–1.0 s (p99 1.1–2.0 s). A key that starts
+# far off and a backlog worked off at once pay for it: Go2 replayed at --rate 0 through its
+# 1.28 s mocap dropout, base 0.67 mm at half a lag, 0.40 at a quarter (every key solved
+# about four times before it leaves), 7.95 at a whole lag
+BACKLOG_STEP = 0.5
 
 
 @dataclass(frozen=True)
@@ -179,9 +183,9 @@ class Stream:
 
     def update(self, min_knots: int = 1) -> Iterator[Update]:
         """Solve the keys that became ready since the last update: one solve for all of
-        them, or (a backlog) one per quarter lag of new keys (`BACKLOG_STEP`), so that every
-        key is solved at least four times before it leaves the lag. min_knots: wait until at
-        least this many keys are ready (fewer, larger solves: throughput for latency)."""
+        them, or (a backlog) one per half lag of new keys (`BACKLOG_STEP`).
+        min_knots: wait until at least this many keys are ready (fewer, larger solves:
+        throughput for latency)."""
         if self.ready_until - self.solved_until < min_knots:
             return
         while self.lag is not None and self.ready_until > self.solved_until:
