@@ -419,6 +419,7 @@ def build_blueprint(
                 origin="world",
                 name=f"{estimate.model_name} (contact arrows: {FORCE_SCALE_M_PER_WEIGHT:g} m = "
                 f"body weight, {weight:.0f} N)",
+                eye_controls=_eye(model, estimate.qpos[0]) if estimate.T else None,
             ),
             rrb.Tabs(*tabs, name="Time series"),
             column_shares=[3, 2],
@@ -776,6 +777,17 @@ def _visible_geoms(model: mujoco.MjModel) -> list[int]:
         for g in range(model.ngeom)
         if model.geom_group[g] < VISIBLE_GEOM_GROUPS and model.geom_rgba[g][3] > 0
     ]
+
+
+def _eye(model: mujoco.MjModel, qpos: np.ndarray) -> rrb.EyeControls3D:
+    """The 3D view's camera on the robot at `qpos` (the floor would frame a robot a few pixels
+    tall): from the front right and above, three sizes of the robot away."""
+    xpos = _body_poses(model, qpos[None])[0][0, 1:]
+    centre = (xpos.min(axis=0) + xpos.max(axis=0)) / 2
+    size = max(float(np.ptp(xpos, axis=0).max()), 0.3)
+    return rrb.EyeControls3D(
+        kind="Orbital", position=centre + size * np.array([2.0, -2.0, 1.2]), look_target=centre
+    )
 
 
 def _body_poses(model: mujoco.MjModel, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
