@@ -27,6 +27,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from estimator.config import Config
+from estimator.diagnose.detect import DetectorSettings, Event
+from estimator.diagnose.online import OnlineDetector
 from estimator.errors import ConfigError, LogError
 from estimator.estimate import Estimate
 from estimator.io.logs.measurements import (
@@ -42,6 +44,7 @@ from estimator.problem import model_with_sensors
 from estimator.run import WINDOW_MARGIN_NS
 from estimator.settings import Settings
 from estimator.solver.fixed_lag import FixedLag, LagStep
+from physics.model import weight
 
 # the most new keys one solve takes, as a fraction of the lag. A solve costs about as much
 # for 10 new keys as for 50 (the whole window is re-solved): at a quarter lag a live node
@@ -67,6 +70,7 @@ class Update:
     backlog: int
     solve_s: float
     event: str = ""  # a divergence detected, and what was done
+    events: list[Event] = field(default_factory=list)  # diagnostics (`Stream(diagnose=…)`)
 
 
 @dataclass
@@ -112,6 +116,8 @@ class Stream:
     lag_s: how long a knot stays in the window before its estimate is final (smoothed).
     stale_s: a stream this far behind the newest sample stops holding knots back.
     clock: the time of arrival of a pushed message (seconds; `time.perf_counter`).
+    diagnose: run the unmodeled-contact detector on the newest knots (`Update.events`;
+        `estimator.diagnose.online`).
     """
 
     def __init__(
@@ -121,11 +127,16 @@ class Stream:
         lag_s: float = 0.5,
         stale_s: float = 0.25,
         clock: Callable[[], float] = time.perf_counter,
+        diagnose: DetectorSettings | None = None,
     ) -> None:
         self.config, self.settings, self.clock = config, settings, clock
         self.compiled = model_with_sensors(config)
         self.model = self.compiled[0]
         self.h = settings.h or float(self.model.opt.timestep)
+        self.detector = None
+        if diagnose is not None:
+            sigma_f = settings.contact_force_std * weight(self.model)
+            self.detector = OnlineDetector(self.model, sigma_f, self.h, diagnose)
         self.step_ns = round(self.h * 1e9)
         self.lag_knots = max(1, round(lag_s / self.h))
         self.backlog_step = max(1, round(BACKLOG_STEP * self.lag_knots))
@@ -209,7 +220,10 @@ class Stream:
         start = self.clock()
         step = self.lag.finish(self._measurements())
         if step is not None:
-            yield self._published(step, 0, start)
+            update = self._published(step, 0, start)
+            if self.detector is not None:
+                update.events.extend(self.detector.close())
+            yield update
 
     # -- the knot grid ---------------------------------------------------------------------
 
@@ -294,6 +308,9 @@ class Stream:
         return out
 
     def _published(self, step: LagStep, backlog: int, start: float) -> Update:
+        events = []
+        if self.detector is not None and step.known_sigma is not None:
+            events = self.detector.add(step.estimate, step.newest, step.known_sigma)
         now = self.clock()
         latency = [now - self._arrival(step.first + i, now) for i in step.newest]
         c = self.counts
@@ -311,5 +328,5 @@ class Stream:
             )
             c.events.append(event)
         return Update(
-            step.estimate, step.newest, step.smoothed, latency, backlog, now - start, event
+            step.estimate, step.newest, step.smoothed, latency, backlog, now - start, event, events
         )

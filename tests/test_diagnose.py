@@ -1,9 +1,11 @@
 """Contact diagnostics: a push found, isolated and sized on a public robot model's log; the
-`disturbances` condition's truth; sensor faults grouped; `physfuse diagnose` end to end."""
+`disturbances` condition's truth; sensor faults grouped; `physfuse diagnose` end to end; the
+online detector inside the streaming estimator."""
 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import mujoco
@@ -16,19 +18,22 @@ from estimator.batch import estimate
 from estimator.cli import main
 from estimator.config import load_config
 from estimator.diagnose import Event, diagnose
-from estimator.diagnose.detect import detect
+from estimator.diagnose.detect import DetectorSettings, detect
 from estimator.diagnose.diagnosis import explained
+from estimator.diagnose.online import CALIBRATE_S
 from estimator.diagnose.report import message
 from estimator.diagnose.score import score, true_events
 from estimator.diagnose.sensor_faults import isolated
 from estimator.diagnose.unmodeled import UnmodeledForces
 from estimator.io.logs import read_log
+from estimator.io.logs.source import open_log
 from estimator.io.rerun import write_recording
 from estimator.settings import Settings
 from estimator.simulate import simulate
 from estimator.simulate.disturbances import PUSH_FORCE_N, PUSH_S, fall_time
 from estimator.simulate.model_scenario import model_scenario
 from estimator.simulate.simulation import T0_NS
+from estimator.stream import Stream
 from physics.model import weight
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -210,3 +215,37 @@ def test_diagnose_rejects_a_non_positive_setting_in_one_line(option, tmp_path, c
     )
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and option in err
+
+
+def test_the_stream_reports_a_push_online_while_it_lasts_and_again_when_it_ends():
+    """recordings/humanoid_push.mcap through `Stream(diagnose=...)` with the node's settings:
+    the push at 3.26 s (33 N on the torso for 0.1 s; the one at 1.0 s falls in the detector's
+    calibration) is reported within a window and a half of its start while it lasts, then
+    final: on the torso, sized within 20%, and nothing else is."""
+    log, config = (
+        ROOT / "recordings" / "humanoid_push.mcap",
+        load_config(ROOT / "configs" / "humanoid_push.toml"),
+    )
+    with open(log, "rb") as f:
+        meta = next(r for r in make_reader(f).iter_metadata() if r.name == "physfuse.simulation")
+    pushes = json.loads(meta.metadata["pushes"])
+    push = next(p for p in pushes if p["start_s"] > CALIBRATE_S)
+    settings = replace(Settings.from_config(config), max_iterations=2, fit_softness="none")
+    stream = Stream(config, settings, lag_s=0.5, diagnose=DetectorSettings())
+    events: list[Event] = []
+    for raw in open_log(log):
+        stream.push(raw)
+        for update in stream.update(min_knots=10):
+            events += update.events
+    for update in stream.close():
+        events += update.events
+    assert stream.lag is not None
+    start_ns = stream.lag.t0_ns + round(push["start_s"] * NS)
+    assert [e.ongoing for e in events] == [True, False]
+    first, final = events
+    assert first.target == final.target == "torso"
+    assert 0 <= first.detected_ns - start_ns <= 1.5 * DetectorSettings().window_s * NS
+    assert final.detected_ns == first.detected_ns
+    assert abs(final.start_ns - start_ns) <= 0.05 * NS
+    true = float(np.linalg.norm(push["force_n"]))
+    assert abs(final.magnitude - true) <= 0.2 * true, (final.magnitude, true)

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from live_nodes import CONFIG, LOG, PHYSFUSE, ROOT, replay, stream, wait_for_size
 from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
 
 from estimator.batch import estimate
 from estimator.config import load_config
@@ -50,11 +51,22 @@ def batch_joint_error() -> float:
 def test_a_recording_replayed_over_tcp_is_estimated_as_it_arrives(tmp_path, batch_joint_error):
     replayer, port = replay(rate=0)
     out, stats = tmp_path / "live.mcap", tmp_path / "stats.json"
-    node = stream(f"tcp://127.0.0.1:{port}", out, "--stats", str(stats), "--quiet")
+    node = stream(f"tcp://127.0.0.1:{port}", out, "--stats", str(stats), "--quiet", "--diagnose")
     _, err = node.communicate(timeout=300)
     replayer.wait(timeout=30)
     assert node.returncode == 0, err
     report = json.loads(stats.read_text())
+    # --diagnose: the tip pressing the floor (`diagnose` calls it the contact's model error),
+    # each event reported while on and again final, into the file as into the stats
+    reported = report["events"]
+    assert reported and all(e["target"] == "arm" for e in reported)
+    assert [e.get("ongoing", False) for e in reported] == [True, False] * (len(reported) // 2)
+    with open(out, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        typed = [m for _, _, _, m in reader.iter_decoded_messages(topics=["/diagnostics/events"])]
+    assert [(m.target, m.ongoing) for m in typed] == [
+        (e["target"], e.get("ongoing", False)) for e in reported
+    ]
     knots = round(3.0 / report["knot_s"])
     # every knot but the two ends published once newest and once smoothed
     assert report["counts"]["knots_newest"] >= knots - 3

@@ -34,6 +34,8 @@ import numpy as np
 
 from estimator.cli.estimate import add_start_pose_argument
 from estimator.config import load_config
+from estimator.diagnose.detect import DetectorSettings
+from estimator.diagnose.report import event_dict, message, write_event
 from estimator.errors import ConfigError, LogError
 from estimator.io.live import DecodingReader, McapStreamServer, check_source
 from estimator.io.logs.measurements import BadSampleCounts
@@ -104,6 +106,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="give up on a TCP source after S s without a connection (default 10)",
     )
     parser.add_argument(
+        "--diagnose",
+        action="store_true",
+        help="detect unmodeled contacts online on the newest knots (docs/diagnostics.md): each "
+        "event reported when confirmed and again, final, when it ends, on /diagnostics and "
+        "/diagnostics/events and in the terminal",
+    )
+    parser.add_argument(
+        "--false-alarms-per-min",
+        type=float,
+        default=1.0,
+        metavar="RATE",
+        help="--diagnose: the target false-alarm rate that sets the threshold (default 1)",
+    )
+    parser.add_argument(
         "--stats", type=Path, help="JSON of the run: latencies, backlog, solve times, counts"
     )
     add_start_pose_argument(parser)
@@ -116,6 +132,8 @@ def run(args: argparse.Namespace) -> int:
         config = config.starting_at(*args.start_pose)
     if args.lag <= 0 or args.stale <= 0 or args.iterations < 1:
         raise ConfigError("--lag and --stale must be > 0 s and --iterations ≥ 1")
+    if args.false_alarms_per_min <= 0:
+        raise ConfigError(f"--false-alarms-per-min {args.false_alarms_per_min}: must be > 0")
     settings = replace(
         Settings.from_config(config), max_iterations=args.iterations, fit_softness="none"
     )
@@ -123,7 +141,14 @@ def run(args: argparse.Namespace) -> int:
     check_source(args.source)
     if args.out is not None and not args.out.parent.is_dir():
         raise LogError(f"--out {args.out}: no such folder {args.out.parent}")
-    stream = Stream(config, settings, lag_s=args.lag, stale_s=args.stale)
+    detector = DetectorSettings(false_alarms_per_min=args.false_alarms_per_min)
+    stream = Stream(
+        config,
+        settings,
+        lag_s=args.lag,
+        stale_s=args.stale,
+        diagnose=detector if args.diagnose else None,
+    )
     model = config.load_model()
     imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
     run_id = str(uuid.uuid4())
@@ -163,7 +188,7 @@ def run(args: argparse.Namespace) -> int:
                 status.queued.append(reader.queue.qsize())
                 for update in stream.update():
                     status.add(update, stream)
-                    _write(sinks, update, imu_sites)
+                    _write(sinks, update, imu_sites, stream)
                     rerun.log(update, stream)
                 status.show(stream)
             except KeyboardInterrupt:
@@ -175,7 +200,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             for update in stream.close():
                 status.add(update, stream)
-                _write(sinks, update, imu_sites)
+                _write(sinks, update, imu_sites, stream)
                 rerun.log(update, stream)
         finally:
             for sink in sinks:
@@ -227,10 +252,21 @@ def _drain(inbox: Any, stream: Stream, status: Status) -> bool:
             return False
 
 
-def _write(sinks: list[EstimateWriter], update: Update, imu_sites: dict[str, str]) -> None:
+def _write(
+    sinks: list[EstimateWriter], update: Update, imu_sites: dict[str, str], stream: Stream
+) -> None:
     for sink in sinks:
         sink.write(update.estimate, update.newest, imu_sites)
         sink.write(update.estimate, update.smoothed, imu_sites, prefix=SMOOTHED_PREFIX)
+        for e in update.events:  # at the update's newest knot: when it was reported
+            assert stream.lag is not None
+            t = update.estimate.t_ns
+            write_event(
+                sink.writer,
+                e,
+                stream.lag.t0_ns,
+                int(t[update.newest[-1]] if update.newest else t[-1]),
+            )
         sink.flush()
 
 
@@ -271,6 +307,7 @@ class Status:
         self.queued: list[int] = []  # messages waiting when the solver took the ready knots
         self.recent: deque[float] = deque(maxlen=500)
         self.lines: deque[str] = deque(maxlen=3)  # the latest source events and warnings
+        self.events: list[dict[str, Any]] = []  # --diagnose: every report (event_dict)
         self.error = ""
         self.lock = threading.Lock()
 
@@ -287,6 +324,11 @@ class Status:
         self.solve.append(update.solve_s)
         if update.event:
             self.log(update.event)
+        for e in update.events:
+            assert stream.lag is not None
+            self.events.append(event_dict(e, stream.lag.t0_ns))
+            at = (e.start_ns - stream.lag.t0_ns) / 1e9
+            self.log(f"{'event' if e.ongoing else 'event ended'} at {at:.3f} s: {message(e)}")
 
     def show(self, stream: Stream, final: bool = False) -> None:
         now = time.perf_counter()
@@ -321,4 +363,5 @@ class Status:
             "counts": asdict(stream.counts),
             "bad": {name: b.as_dict() for name, b in self.bad.items()},
             "knot_s": stream.h,
+            "events": self.events,
         }

@@ -66,6 +66,7 @@ class Event:
     component: str = ""
     candidates: dict[str, float] = field(default_factory=dict)  # body → likelihood ratio
     explained_by: str = ""  # a sensor fault that explains this event ("": none)
+    ongoing: bool = False  # online: the first report, its alarm still on (the final follows)
 
     @property
     def magnitude(self) -> float:
@@ -111,19 +112,25 @@ def detect(forces: UnmodeledForces, settings: DetectorSettings | None = None) ->
             d2[ok, b] = np.einsum("ki,ij,kj->k", diff, np.linalg.inv(cov[b]), diff)
     # the log's first and last window: the smoother saw them from one side only
     d2[: L + 1], d2[max(0, T - L - 1) :] = np.nan, np.nan
-    p = settings.false_alarms_per_min * settings.window_s / 60.0 / max(B, 1)
-    threshold = float(chi2.isf(p, 3))
+    threshold = alarm_threshold(settings, B)
     d2 = d2 / local_scale(d2, forces.h, settings.causal)[:, None]
     detection = Detection(forces, settings, L, force, mean, cov, d2, threshold, [])
     alarm = np.nan_to_num(d2, nan=0.0).max(axis=1) > threshold
     joined = runs(alarm, gap=max(L, round(JOIN_S / forces.h)))
     # an event lasts: a push of a window or more keeps a window's median up that long; a
     # contact made or broken a knot off its estimate moves it for less
-    events = [_event(detection, s, e) for s, e in joined if e - s + 1 >= L]
+    events = [alarm_event(detection, s, e) for s, e in joined if e - s + 1 >= L]
     return Detection(forces, settings, L, force, mean, cov, d2, threshold, events)
 
 
-def _event(det: Detection, s: int, e: int) -> Event:
+def alarm_threshold(settings: DetectorSettings, bodies: int) -> float:
+    """χ²(3)'s quantile for the false-alarm rate, spread over the windows per minute and the
+    bodies (Bonferroni): p = rate · window_s / 60 s / B."""
+    p = settings.false_alarms_per_min * settings.window_s / 60.0 / max(bodies, 1)
+    return float(chi2.isf(p, 3))
+
+
+def alarm_event(det: Detection, s: int, e: int) -> Event:
     """The event of alarmed windows s … e (inclusive)."""
     forces, L = det.forces, det.window
     T = len(forces.t_ns)

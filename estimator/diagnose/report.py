@@ -58,6 +58,8 @@ def event_dict(e: Event, t0_ns: int) -> dict[str, Any]:
         out["step_sigma"] = float(e.force[0])
     if e.explained_by:
         out["explained_by"] = e.explained_by
+    if e.ongoing:
+        out["ongoing"] = True
     return out
 
 
@@ -112,21 +114,7 @@ def write_mcap(sink: MessageSink, diagnosis: Diagnosis) -> None:
     """The /diagnostics topics (module docstring) into an MCAP sink."""
     forces, det = diagnosis.forces, diagnosis.detection
     for e in diagnosis.events:
-        values = event_dict(e, int(forces.t_ns[0]))
-        status = {
-            "level": ERROR if e.kind == "sensor fault" else WARN,
-            "name": f"physfuse/{e.kind.replace(' ', '_')}",
-            "message": message(e),
-            "hardware_id": e.target,
-            "values": [{"key": k, "value": _text(v)} for k, v in values.items()],
-        }
-        sink.write(
-            DIAGNOSTICS,
-            DIAGNOSTIC_ARRAY,
-            {"header": header(e.start_ns), "status": [status]},
-            e.start_ns,
-        )
-        sink.write(EVENTS, ros2_types.DIAGNOSTIC_EVENT, event_message(e), e.start_ns)
+        write_event(sink, e, int(forces.t_ns[0]), e.start_ns)
     for b, body in enumerate(forces.bodies):
         topic = UNMODELED_FORCE + body
         for k in np.flatnonzero(np.isfinite(det.force[:, b]).all(axis=1)):
@@ -136,6 +124,22 @@ def write_mcap(sink: MessageSink, diagnosis: Diagnosis) -> None:
                 "wrench": {"force": vector3(det.force[k, b]), "torque": vector3(np.zeros(3))},
             }
             sink.write(topic, ros2_types.WRENCH_STAMPED, fields, t)
+
+
+def write_event(sink: MessageSink, e: Event, t0_ns: int, log_time_ns: int) -> None:
+    """One event on /diagnostics and /diagnostics/events (stamped at its start, written at
+    `log_time_ns`: a live stream's at the knot that reported it)."""
+    values = event_dict(e, t0_ns)
+    status = {
+        "level": ERROR if e.kind == "sensor fault" else WARN,
+        "name": f"physfuse/{e.kind.replace(' ', '_')}",
+        "message": message(e),
+        "hardware_id": e.target,
+        "values": [{"key": k, "value": _text(v)} for k, v in values.items()],
+    }
+    array = {"header": header(e.start_ns), "status": [status]}
+    sink.write(DIAGNOSTICS, DIAGNOSTIC_ARRAY, array, log_time_ns)
+    sink.write(EVENTS, ros2_types.DIAGNOSTIC_EVENT, event_message(e), log_time_ns)
 
 
 def event_message(e: Event) -> dict[str, Any]:
@@ -154,6 +158,7 @@ def event_message(e: Event) -> dict[str, Any]:
         "explained_by": e.explained_by,
         "candidates": [name for name, _ in best],
         "candidate_likelihood_ratios": [float(r) for _, r in best],
+        "ongoing": e.ongoing,
     }
 
 
@@ -165,7 +170,8 @@ def message(e: Event) -> str:
         text = f"{e.target}: the model's normal force is off by {e.force[0]:+.1f} N"
     else:
         text = f"{e.target} {e.component} stepped {e.force[0]:+.1f} sigma"
-    return text + (f" (explained by {e.explained_by})" if e.explained_by else "")
+    text += f" (explained by {e.explained_by})" if e.explained_by else ""
+    return text + (" (ongoing)" if e.ongoing else "")
 
 
 def _text(v: Any) -> str:

@@ -25,6 +25,7 @@ estimate's feet take up the rest as friction.
 from __future__ import annotations
 
 import copy
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import mujoco
@@ -68,6 +69,8 @@ def unmodeled_forces(
     contact_force_std: float,
     contact_margin: float = CONTACT_MARGIN_M,
     force_prior: float | None = None,
+    knots: Sequence[int] | None = None,
+    residual: np.ndarray | None = None,
 ) -> UnmodeledForces:
     """The `UnmodeledForces` of an estimate.
 
@@ -77,7 +80,9 @@ def unmodeled_forces(
     geoms this close count as touching (a foot lands a knot earlier than its estimate does);
     force_prior [N]: F ~ N(0, force_prior²) at each knot (default `FORCE_PRIOR` × the
     robot's weight): what the residual cannot see of a force (a hinge's axial direction) is
-    0, not arbitrary.
+    0, not arbitrary. knots: the knots to compute (default all; the others' info is 0).
+    residual: (T, nv) another generalized force residual in place of the physics one
+    (default est.qfrc_inverse − est.qfrc_known; the momentum observer's, a baseline).
     """
     if force_prior is None:
         force_prior = FORCE_PRIOR * weight(model)
@@ -90,8 +95,10 @@ def unmodeled_forces(
     data = mujoco.MjData(model)
     jacp = np.zeros((3, model.nv))
     J_b = np.zeros((len(bodies), model.nv, 3))
-    for k in range(est.T):
-        knot = knot_residual(model, data, est, sigma, k, contact_force_std)
+    if residual is None:
+        residual = est.qfrc_inverse - est.qfrc_known
+    for k in range(est.T) if knots is None else knots:
+        knot = knot_residual(model, data, est, sigma, k, contact_force_std, residual[k])
         if knot is None:
             continue
         for i, b in enumerate(bodies):
@@ -132,10 +139,12 @@ def knot_residual(
     sigma: np.ndarray,
     k: int,
     contact_force_std: float,
+    residual: np.ndarray | None = None,
 ) -> KnotResidual | None:
     """`KnotResidual` of knot k (None: no dof has a known force there); `model` with the
-    contact margin (`with_margin`)."""
-    residual = est.qfrc_inverse[k] - est.qfrc_known[k]
+    contact margin (`with_margin`). residual: (nv,) (default the physics residual)."""
+    if residual is None:
+        residual = est.qfrc_inverse[k] - est.qfrc_known[k]
     known = np.isfinite(residual) & np.isfinite(sigma[k]) & (sigma[k] > 0)
     if not known.any():
         return None

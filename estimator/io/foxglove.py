@@ -135,6 +135,7 @@ class BridgePublisher:
             "sensor_msgs/msg/JointState",
             "geometry_msgs/msg/WrenchStamped",
             "geometry_msgs/msg/AccelStamped",
+            "diagnostic_msgs/msg/DiagnosticArray",
         }
     )
 

@@ -49,6 +49,7 @@ class LagStep:
         stays (its rows are all in the next window's prior): their final estimate.
     first: the global index of the window's first knot.
     diverged: why the solve was rejected and the window reset ("" if it was not).
+    known_sigma: (W, nv) the physics residual's σ per knot (`Problem.known_sigma`).
     """
 
     estimate: Estimate
@@ -57,6 +58,7 @@ class LagStep:
     first: int
     result: WindowResult
     diverged: str = ""
+    known_sigma: np.ndarray | None = None
 
 
 class FixedLag:
@@ -142,7 +144,9 @@ class FixedLag:
         estimate = collect_estimate(
             problem, result.qpos, result.bias, std, self.config, publish, residuals=False
         )
-        step = LagStep(estimate, newest, smoothed, self.first, result, diverged)
+        step = LagStep(
+            estimate, newest, smoothed, self.first, result, diverged, problem.known_sigma
+        )
         self.published = self.first + W - 1
         self.qpos, self.bias = result.qpos[cut:].copy(), result.bias[cut:].copy()
         self.first += cut
@@ -168,7 +172,7 @@ class FixedLag:
             problem, result.qpos, result.bias, std, self.config, smoothed, residuals=False
         )
         newest = range(max(self.published - self.first, 1), W - 1)
-        return LagStep(estimate, newest, smoothed, self.first, result)
+        return LagStep(estimate, newest, smoothed, self.first, result, "", problem.known_sigma)
 
     def _std(self, result: WindowResult, W: int, newest: range, smoothed: range) -> np.ndarray:
         """(W, nv) marginal σ at the knots to publish (NaN at the others): the newest from

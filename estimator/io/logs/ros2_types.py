@@ -109,8 +109,8 @@ physfuse_msgs/Contact[] contacts
 DIAGNOSTIC_EVENT = "physfuse_msgs/msg/DiagnosticEvent"
 DIAGNOSTIC_EVENT_MSG = """\
 # One event of `physfuse diagnose` (docs/diagnostics.md): where and when the physics does not
-# add up. Written at the event's start on /diagnostics/events, beside its DiagnosticArray
-# status on /diagnostics.
+# add up. Written on /diagnostics/events beside its DiagnosticArray status on /diagnostics:
+# at the event's start (diagnose), at the knot that reported it (stream --diagnose).
 
 # kind
 uint8 UNMODELED_CONTACT=0   # a force on `target` (a body) that actuation and the modeled
@@ -135,6 +135,9 @@ float64 score                           # the peak statistic over its threshold 
 string explained_by                     # the sensor fault that explains it ("": none)
 string[] candidates                     # UNMODELED_CONTACT: the best-fitting bodies, best first
 float64[] candidate_likelihood_ratios   # their likelihood ratios
+bool ongoing                            # `physfuse stream --diagnose`: the first report, its
+                                        # alarm still on (interval and size so far); the final
+                                        # report of the same event follows
 """
 
 PHYSFUSE_MSGS: Mapping[str, str] = {
