@@ -305,16 +305,30 @@ def test_a_sensor_that_stops_does_not_stop_the_knots():
 
 def test_the_live_rerun_recording_reads_back(tmp_path):
     """--rerun FILE.rrd: the recording read back with Rerun's own reader has every body's
-    pose at (nearly) every knot, the uncertainty plots, on seconds since the first knot."""
+    pose at (nearly) every knot, the uncertainty plots, on seconds since the first knot, and
+    the --diagnose events."""
     from test_visualize import read_recording
 
     replayer, port = replay(rate=0)
     rrd = tmp_path / "live.rrd"
-    node = stream(f"tcp://127.0.0.1:{port}", tmp_path / "x.mcap", "--rerun", str(rrd), "--quiet")
+    out, stats = tmp_path / "x.mcap", tmp_path / "stats.json"
+    node = stream(
+        f"tcp://127.0.0.1:{port}",
+        out,
+        "--rerun",
+        str(rrd),
+        "--quiet",
+        "--diagnose",
+        "--stats",
+        str(stats),
+    )
     _, err = node.communicate(timeout=300)
     replayer.wait(timeout=30)
     assert node.returncode == 0, err
     entities = read_recording(rrd)
+    # --diagnose: every report on the timeline, as in --stats
+    reports = json.loads(stats.read_text())["events"]
+    assert reports and len(entities["/diagnostics/events"].time_ns) == len(reports)
     arm = [e for path, e in entities.items() if path.startswith("/world/model/")]
     assert arm, list(entities)
     times = sorted(set(arm[0].time_ns))

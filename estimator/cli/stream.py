@@ -152,7 +152,8 @@ def run(args: argparse.Namespace) -> int:
     model = config.load_model()
     imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
     run_id = str(uuid.uuid4())
-    rerun = _Rerun(args.rerun, model, run_id)  # (a viewer that cannot open: before the rest)
+    # (a viewer that cannot open: before the rest)
+    rerun = _Rerun(args.rerun, model, run_id, args.diagnose)
     sinks = []  # (live ones first: one that cannot start leaves no file behind)
     if args.publish == "-":
         sinks.append(
@@ -274,17 +275,18 @@ class _Rerun:
     """`--rerun`: the Rerun recording (its time origin the stream's first knot): each
     update's newest knots, then its smoothed ones over them."""
 
-    def __init__(self, to: str | None, model: Any, run_id: str) -> None:
+    def __init__(self, to: str | None, model: Any, run_id: str, diagnose: bool) -> None:
         self.live: Any = None
         if to is not None:
             from estimator.io.rerun import LiveRecording  # (Rerun only when asked for)
 
-            self.live = LiveRecording(model, to, run_id)
+            self.live = LiveRecording(model, to, run_id, diagnose=diagnose)
 
     def log(self, update: Update, stream: Stream) -> None:
         if self.live is not None and stream.lag is not None:
             self.live.log(update.estimate, update.newest, stream.lag.t0_ns)
             self.live.log(update.estimate, update.smoothed, stream.lag.t0_ns)
+            self.live.log_events(update.events)
 
     def close(self) -> None:
         if self.live is not None:

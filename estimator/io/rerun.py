@@ -57,6 +57,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from estimator.diagnose.detect import Event
 from estimator.diagnose.diagnosis import Diagnosis
 from estimator.diagnose.report import message
 from estimator.errors import PhysfuseError
@@ -251,6 +252,7 @@ class LiveRecording:
 
         live = LiveRecording(model, "out/live.rrd")     # a viewer that cannot open: here
         live.log(update.estimate, update.newest, t0_ns)  # t0_ns: the first call's is kept
+        live.log_events(update.events)                   # `Stream(diagnose=...)`'s reports
         live.close()
     """
 
@@ -260,8 +262,10 @@ class LiveRecording:
         to: str,
         recording_id: str | None = None,
         host: str = "127.0.0.1",
+        diagnose: bool = False,
     ) -> None:
         self.model = model
+        self.diagnose = diagnose  # the Diagnostics tab (events only)
         self.t0_ns: int | None = None
         self.rec = rr.RecordingStream("physfuse stream", recording_id=recording_id)
         if to == "spawn":
@@ -289,11 +293,24 @@ class LiveRecording:
         if self.t0_ns is None:  # (the blueprint's tabs follow what the estimate holds)
             self.t0_ns = t0_ns
             self.rec.send_recording_start_time_nanos(t0_ns)
-            self.rec.send_blueprint(build_blueprint(part, self.model))
+            self.rec.send_blueprint(
+                build_blueprint(part, self.model, self.diagnose, statistic=False)
+            )
         offsets = part.t_ns - np.int64(self.t0_ns)
         _log_body_poses(self.rec, self.model, part.qpos, offsets)
         _log_contacts(self.rec, self.model, part, offsets)
         _log_series_group(self.rec, "plots/uncertainty", self.dofs, part.qpos_std, offsets)
+
+    def log_events(self, events: Sequence[Event]) -> None:
+        """Diagnostic events as text on the timeline: an ongoing one at the knot that reported
+        it, a final one at its start."""
+        if self.t0_ns is None:
+            return
+        for e in events:
+            at = e.detected_ns if e.ongoing else e.start_ns
+            level = rr.TextLogLevel.ERROR if e.kind == "sensor fault" else rr.TextLogLevel.WARN
+            self.rec.set_time("time", duration=np.timedelta64(at - self.t0_ns, "ns"))
+            self.rec.log("diagnostics/events", rr.TextLog(f"{e.kind}: {message(e)}", level=level))
 
     def close(self) -> None:
         self.rec.flush(timeout_sec=LIVE_FLUSH_TIMEOUT_S)
@@ -366,22 +383,21 @@ def serve_until_interrupted() -> None:
 
 
 def build_blueprint(
-    estimate: Estimate, model: mujoco.MjModel, diagnosis: bool = False
+    estimate: Estimate, model: mujoco.MjModel, diagnosis: bool = False, statistic: bool = True
 ) -> rrb.Blueprint:
     """The layout: 3D view left; right, tabs of time series (only those with data), the
-    diagnosis's first when there is one."""
+    diagnosis's first when there is one (its events, and the detector's statistic unless
+    `statistic` is False: a live stream's)."""
     tabs: list[rrb.Container | rrb.View] = []
     if diagnosis:
-        tabs.append(
-            rrb.Vertical(
-                rrb.TextLogView(origin="diagnostics/events", name="Events"),
-                rrb.TimeSeriesView(
-                    origin="plots/diagnostics", name="Unmodeled-force statistic / threshold"
-                ),
-                row_shares=[1, 2],
-                name="Diagnostics",
+        events = rrb.TextLogView(origin="diagnostics/events", name="Events")
+        if statistic:
+            plot = rrb.TimeSeriesView(
+                origin="plots/diagnostics", name="Unmodeled-force statistic / threshold"
             )
-        )
+            tabs.append(rrb.Vertical(events, plot, row_shares=[1, 2], name="Diagnostics"))
+        else:
+            tabs.append(rrb.Vertical(events, name="Diagnostics"))
     residual_views = []
     if "physics" in estimate.residuals:
         residual_views.append(
