@@ -59,7 +59,6 @@ class OnlineDetector:
         self.keep = round(HISTORY_S / h)
         self.calibrate_after, self.recalibrate = round(CALIBRATE_S / h), round(RECALIBRATE_S / h)
         self.join = max(self.L, round(JOIN_S / h))
-        self.confirm = self.L  # knots an alarm lasts before it is reported (`detect`'s rule)
         self.reach = max(2, round(REFERENCE_S / h)) + 1
         self.t_ns: list[int] = []  # the knots so far (the last `keep`)
         self.info: list[np.ndarray] = []  # (B, 3, 3) per knot
@@ -173,7 +172,7 @@ class OnlineDetector:
                 self.alarm, self.reported_ns = (k, k), None
             s = self.alarm[0]
             self.alarm = (s, k)
-            if self.reported_ns is None and k - s + 1 >= self.confirm:
+            if self.reported_ns is None and k - s + 1 >= self.L:  # an event lasts a window
                 self.reported_ns = self.t_ns[k]
                 out.append(replace(self._event(s, k), detected_ns=self.t_ns[k], ongoing=True))
         return out
