@@ -93,46 +93,67 @@ def moment_dense(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
     return moment
 
 
+def actuation_at(
+    model: mujoco.MjModel, data: mujoco.MjData, ctrl: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """MuJoCo's actuation of the commands ctrl (nu,) at data's state (mj_inverse or mj_forward
+    has run on it; its ctrl, actuator_force and qfrc_actuator are overwritten): the moment
+    arms (nu, nv) and the actuator forces (nu,), what `commanded_forces` turns into forces
+    and Jacobians (at many knots at once)."""
+    data.ctrl[:] = np.where(np.isfinite(ctrl), ctrl, 0.0)
+    mujoco.mj_fwdActuation(model, data)
+    return moment_dense(model, data), data.actuator_force.copy()
+
+
+def commanded_forces(
+    model: mujoco.MjModel,
+    ctrl: np.ndarray,
+    moment: np.ndarray,
+    force: np.ndarray,
+    jacobians: bool = False,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """qfrc (K, nv) of the commands ctrl (K, nu) at K states, NaN: no command (that actuator's
+    force left out), from `actuation_at`'s moment (K, nu, nv) and force (K, nu); with
+    jacobians, ∂qfrc/∂q and ∂qfrc/∂v (K, nv, nv) in the tangent space (the module's
+    formulas)."""
+    given = np.isfinite(ctrl)
+    f = np.where(given, force, 0.0)
+    qfrc = np.einsum("kun,ku->kn", moment, f)
+    if not jacobians:
+        return qfrc, None, None
+    c = np.where(given, ctrl, 0.0)  # as MuJoCo clamps it to ctrlrange
+    if not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL:
+        limited = model.actuator_ctrllimited.astype(bool)
+        low, high = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
+        c = np.where(limited, np.clip(c, low, high), c)
+    # (against the enum's int: an array compared with the enum object goes element by element
+    # through Python, 70 µs for 21 actuators)
+    affine_gain = model.actuator_gaintype == _GAIN.mjGAIN_AFFINE.value
+    affine_bias = model.actuator_biastype == _BIAS.mjBIAS_AFFINE.value
+    gain, bias = model.actuator_gainprm, model.actuator_biasprm
+    df_dl = np.where(affine_gain, gain[:, 1], 0.0) * c + np.where(affine_bias, bias[:, 1], 0.0)
+    df_dv = np.where(affine_gain, gain[:, 2], 0.0) * c + np.where(affine_bias, bias[:, 2], 0.0)
+    free = given & ~_at_forcerange(model, force)
+    df_dl, df_dv = np.where(free, df_dl, 0.0), np.where(free, df_dv, 0.0)
+    moment_t = moment.transpose(0, 2, 1)
+    return qfrc, moment_t @ (df_dl[:, :, None] * moment), moment_t @ (df_dv[:, :, None] * moment)
+
+
 def commanded_force(
     model: mujoco.MjModel,
     data: mujoco.MjData,
     ctrl: np.ndarray,
     jacobians: bool = False,
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """qfrc (nv,) of the commands ctrl (nu,) at data's state, NaN: no command (that actuator's
-    force left out); with jacobians, ∂qfrc/∂q and ∂qfrc/∂v (nv, nv) in the tangent space.
-
-    data must hold the state's positions and velocities (mj_inverse or mj_forward has run on
-    it); its ctrl, actuator_force and qfrc_actuator are overwritten.
-    """
-    given = np.isfinite(ctrl)
-    data.ctrl[:] = np.where(given, ctrl, 0.0)
-    mujoco.mj_fwdActuation(model, data)
-    force = np.where(given, data.actuator_force, 0.0)
-    moment = moment_dense(model, data)
-    qfrc = moment.T @ force
-    if not jacobians:
-        return qfrc, None, None
-    c = data.ctrl.copy()  # as MuJoCo clamps it to ctrlrange
-    if not model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_CLAMPCTRL:
-        limited = model.actuator_ctrllimited.astype(bool)
-        low, high = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
-        c = np.where(limited, np.clip(c, low, high), c)
-    # (against the enum's int: an array compared with the enum object goes element by element
-    # through Python, 70 µs for 21 actuators, a sixth of a knot's Jacobian pass)
-    affine_gain = model.actuator_gaintype == _GAIN.mjGAIN_AFFINE.value
-    affine_bias = model.actuator_biastype == _BIAS.mjBIAS_AFFINE.value
-    gain, bias = model.actuator_gainprm, model.actuator_biasprm
-    df_dl = np.where(affine_gain, gain[:, 1], 0.0) * c + np.where(affine_bias, bias[:, 1], 0.0)
-    df_dv = np.where(affine_gain, gain[:, 2], 0.0) * c + np.where(affine_bias, bias[:, 2], 0.0)
-    free = given & ~_at_forcerange(model, data)
-    df_dl, df_dv = np.where(free, df_dl, 0.0), np.where(free, df_dv, 0.0)
-    return qfrc, moment.T @ (df_dl[:, None] * moment), moment.T @ (df_dv[:, None] * moment)
+    """`commanded_forces` at data's one state: qfrc (nv,), with jacobians ∂qfrc/∂q and
+    ∂qfrc/∂v (nv, nv)."""
+    moment, force = actuation_at(model, data, ctrl)
+    qfrc, dq, dv = commanded_forces(model, ctrl[None], moment[None], force[None], jacobians)
+    return qfrc[0], None if dq is None else dq[0], None if dv is None else dv[0]
 
 
-def _at_forcerange(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
-    """(nu,) actuators whose force MuJoCo clamped to their forcerange."""
+def _at_forcerange(model: mujoco.MjModel, force: np.ndarray) -> np.ndarray:
+    """(..., nu) actuators whose force (..., nu) MuJoCo clamped to their forcerange."""
     limited = model.actuator_forcelimited.astype(bool)
     low, high = model.actuator_forcerange[:, 0], model.actuator_forcerange[:, 1]
-    f = data.actuator_force
-    return limited & ((f <= low) | (f >= high))
+    return limited & ((force <= low) | (force >= high))

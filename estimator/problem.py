@@ -37,7 +37,13 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
-from estimator.actuation import check_commanded, commanded_force, moment_dense
+from estimator.actuation import (
+    actuation_at,
+    check_commanded,
+    commanded_force,
+    commanded_forces,
+    moment_dense,
+)
 from estimator.config import Config
 from estimator.factors import UNITS, Grid, SensorBlock
 from estimator.factors.base import MODEL_ERROR
@@ -88,6 +94,25 @@ class Problem:
             return self.qfrc_known[k], None, None
         qfrc, dq, dv = commanded_force(self.model, data, self.ctrl[k], jacobians)
         return self.qfrc_known[k] + qfrc, dq, dv
+
+    def commanded(self, k: int) -> bool:
+        """Whether knot k has a command for some actuator."""
+        return bool(np.isfinite(self.ctrl[k]).any())
+
+    def actuation(self, data: mujoco.MjData, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """MuJoCo's actuation of knot k's commands at data's state (`actuation_at`), for
+        `u_known_of`."""
+        return actuation_at(self.model, data, self.ctrl[k])
+
+    def u_known_of(
+        self, knots: range, actuation: tuple[np.ndarray, np.ndarray], jacobians: bool = False
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """`u_known` at many knots at once: (len, nv), with jacobians ∂/∂q and ∂/∂v (len, nv,
+        nv), from each knot's `actuation` (moment arms and forces; zero at a knot without
+        commands)."""
+        ctrl = self.ctrl[knots.start : knots.stop]
+        qfrc, dq, dv = commanded_forces(self.model, ctrl, *actuation, jacobians)
+        return self.qfrc_known[knots.start : knots.stop] + qfrc, dq, dv
 
     @property
     def T(self) -> int:

@@ -93,8 +93,8 @@ def test_considered_softness_through_an_impact_uses_the_secants_to_its_sigma_poi
     variance = covariance.consider_variance(only_kappa, solved, ("softness_kappa",))
     predicted = np.sqrt(variance[0, 2])
     at = covariance.rows_at(problem, problem.model, solved)
-    _, _, tangent = covariance.parameter_sensitivity(
-        problem, solved, solved.solved_system, "softness_kappa", at
+    ((_, _, tangent),) = covariance.parameter_sensitivities(
+        problem, solved, solved.solved_system, [("softness_kappa", covariance.CONSIDER_STEP)], at
     )
     assert actual > 1e-4  # a tenth of a millimetre
     assert actual / 2 < predicted < actual
@@ -111,7 +111,9 @@ def test_a_force_sensor_predicted_through_the_contacts_enters_the_sensitivity():
     actual = np.sqrt(np.mean(np.sum((moved.qpos[:, box] - solved.qpos[:, box]) ** 2, axis=1)))
     at = covariance.rows_at(problem, problem.model, solved)
     system = solved.solved_system
-    dr, _, S = covariance.parameter_sensitivity(problem, solved, system, "softness_kappa", at)
+    ((dr, _, S),) = covariance.parameter_sensitivities(
+        problem, solved, system, [("softness_kappa", covariance.CONSIDER_STEP)], at
+    )
     predicted = step * np.sqrt(np.mean(np.sum(S[:, box] ** 2, axis=1)))
     physics_only = covariance.key_gradient(problem, solved.blocks[:1], dr[:1])
     s, ab = system.scaled_band()

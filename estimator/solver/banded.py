@@ -262,13 +262,19 @@ class BandedSystem:
     def damped_step(self, s: np.ndarray, ab: np.ndarray, lam: float) -> np.ndarray:
         """argmin ‖J dx + r‖² + λ Σ diag(JᵀJ) dx² → dx (T, nz); raises LinAlgError when the
         damped system is not positive definite."""
+        return self.damped_steps(s, ab, lam, self.g[..., None])[..., 0]
+
+    def damped_steps(self, s: np.ndarray, ab: np.ndarray, lam: float, G: np.ndarray) -> np.ndarray:
+        """The damped steps −(H + λD)⁻¹ g for each column g of G (T, nz, m), one
+        factorization: (T, nz, m)."""
         damped = ab.copy(order="F")
         damped[0] += lam
         factor = scipy.linalg.cholesky_banded(
             damped, overwrite_ab=True, lower=True, check_finite=False
         )
-        y = scipy.linalg.cho_solve_banded((factor, True), -s * self.g.reshape(-1))
-        return (s * y).reshape(self.g.shape)
+        rhs = -s[:, None] * G.reshape(-1, G.shape[-1])
+        y = scipy.linalg.cho_solve_banded((factor, True), rhs, check_finite=False)
+        return (s[:, None] * y).reshape(G.shape)
 
 
 def banded_inverse_blocks(L: np.ndarray, nz: int, first: int = 0) -> np.ndarray:

@@ -116,27 +116,30 @@ def key_gradient(problem: Problem, blocks: list[Block], rows: list[np.ndarray]) 
     return out
 
 
-def parameter_sensitivity(
+def parameter_sensitivities(
     problem: Problem,
     result: WindowResult,
     system: BandedSystem,
-    name: str,
+    perturbations: list[tuple[str, float]],
     at: list[np.ndarray],
-    step: float = CONSIDER_STEP,
-) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
-    """For one CONSIDERED parameter θ (a relative change): ∂r/∂θ of every factor's rows (one
-    (K, m) per block: the physics, and the sensors the model predicts through θ — a
+) -> list[tuple[list[np.ndarray], np.ndarray, np.ndarray]]:
+    """For each CONSIDERED parameter θ (a relative change) and step: ∂r/∂θ of every factor's
+    rows (one (K, m) per block: the physics, and the sensors the model predicts through θ — a
     force/torque sensor through the contacts) as the difference quotient over θ → θ + step,
     C = Jᵀ ∂r/∂θ by key (T, nz) and the estimate's sensitivity S = −H⁻¹ C (T, nz) with H
-    that of `system`; `at`: the rows at the result's solution (`rows_at`)."""
-    perturb, _ = CONSIDERED[name]
-    model = copy.deepcopy(problem.model)
-    perturb(model, 1.0 + step)
-    moved = rows_at(problem, model, result)
-    dr = [(r - r0) / step for r, r0 in zip(moved, at, strict=True)]
-    C = key_gradient(problem, result.blocks, dr)
+    that of `system` (one factorization for all); `at`: the rows at the result's solution
+    (`rows_at`)."""
+    parts = []
+    for name, step in perturbations:
+        perturb, _ = CONSIDERED[name]
+        model = copy.deepcopy(problem.model)
+        perturb(model, 1.0 + step)
+        moved = rows_at(problem, model, result)
+        dr = [(r - r0) / step for r, r0 in zip(moved, at, strict=True)]
+        parts.append((dr, key_gradient(problem, result.blocks, dr)))
     s, ab = system.scaled_band()
-    return dr, C, replace(system, g=C).damped_step(s, ab, LAMBDA_MIN)
+    S = system.damped_steps(s, ab, LAMBDA_MIN, np.stack([C for _, C in parts], axis=-1))
+    return [(dr, C, S[..., i]) for i, (dr, C) in enumerate(parts)]
 
 
 def consider_variance(
@@ -157,6 +160,7 @@ def consider_variance(
     if system is None or not result.blocks:
         return variance
     at_solution = None
+    sides: list[tuple[str, float]] = []  # (parameter, ±its spread)
     for name in parameters:
         sigma = getattr(problem.settings, CONSIDERED[name][1])
         if sigma <= 0:
@@ -168,13 +172,17 @@ def consider_variance(
         # a contact's force is far from linear in its softness (the tangent at θ overstated a
         # humanoid's fall by 4.6×), and one side may be cut off (κ ≥ 2h)
         spread = min(sigma, MAX_SPREAD)
-        try:
-            S_plus, S_minus = (
-                parameter_sensitivity(problem, result, system, name, at_solution, side)[2]
-                for side in (spread, -spread)
-            )
-        except np.linalg.LinAlgError:
-            continue
+        sides.append((name, spread))
+        sides.append((name, -spread))
+    if not sides:
+        return variance
+    assert at_solution is not None
+    try:
+        S = [S for _, _, S in parameter_sensitivities(problem, result, system, sides, at_solution)]
+    except np.linalg.LinAlgError:
+        return variance
+    for (name, _), S_plus, S_minus in zip(sides[::2], S[::2], S[1::2], strict=True):
+        sigma = getattr(problem.settings, CONSIDERED[name][1])
         # its RMS over the window, per dof: a constant parameter moves the estimate by about
         # this much throughout, where the linear sensitivity may pass through zero (a load
         # moving from foot to foot)

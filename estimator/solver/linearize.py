@@ -114,6 +114,8 @@ class Linearizer:
         S = np.zeros((3, n_jac, nv, ns))  # ∂s/∂(q, v, a)
         JuT = np.empty((n_jac, 3 * nv, nv))  # the chained Jacobians, transposed
         JsT = np.empty((n_jac, 3 * nv, ns))
+        Ju = np.empty((n_jac, nv, 3 * nv))  # and in the rows' layout (a sensor's rows contiguous)
+        Js = np.empty((n_jac, ns, 3 * nv))
         if with_jacobians:
             # chain rule through v_k = (q_k ⊖ q_{k−1})/h and a_k = (v_{k+1} − v_k)/h:
             # ∂v_k/∂(x_{k−1}, x_k) = (d1_k, d2_k)/h, ∂a_k/∂(x_{k−1}, x_k, x_{k+1}) =
@@ -145,11 +147,20 @@ class Linearizer:
 
         keep = self.derivatives
 
+        commands = p.ctrl.shape[1] > 0 and bool(np.isfinite(p.ctrl[1:-1]).any())
+        nu = p.model.nu
+
         def work(engine: KnotEngine, chunk: range) -> None:
+            rows = slice(chunk.start - 1, chunk.stop - 1)
+            if commands:  # the commands' actuation at each knot, their forces after the loop
+                moment = np.zeros((len(chunk), nu, nv))
+                force = np.zeros((len(chunk), nu))
             for k in chunk:
                 i = k - 1
                 u[i], s[i] = engine.inverse(qpos[k], v[k], a[k])
-                known[i], known_dq, known_dv = p.u_known(engine.data, k, with_jacobians)
+                if commands and p.commanded(k):
+                    j = k - chunk.start
+                    moment[j], force[j] = p.actuation(engine.data, k)
                 if with_jacobians:
                     kept = keep.get(self.first + k, qpos[k], v[k], a[k]) if keep else None
                     if kept is not None:
@@ -158,19 +169,25 @@ class Linearizer:
                         engine.derivatives(qpos[k], v[k], a[k], *F[:, i], *S[:, i])
                         if keep is not None:
                             keep.put(self.first + k, qpos[k], v[k], a[k], F[:, i], S[:, i])
-                    if known_dq is not None and known_dv is not None:  # of u − u_known
-                        F[0, i] -= known_dq.T
-                        F[1, i] -= known_dv.T
+            if not commands:
+                known[rows] = p.qfrc_known[chunk.start : chunk.stop]
+            else:
+                actuation = (moment, force)
+                known[rows], known_dq, known_dv = p.u_known_of(chunk, actuation, with_jacobians)
+                if known_dq is not None and known_dv is not None:  # of u − u_known
+                    F[0, rows] -= known_dq.transpose(0, 2, 1)
+                    F[1, rows] -= known_dv.transpose(0, 2, 1)
             if with_jacobians:  # numpy releases the GIL: the chain rule runs in parallel too
-                rows = slice(chunk.start - 1, chunk.stop - 1)
                 chained(F[:, rows], rows, JuT[rows])
                 chained(S[:, rows], rows, JsT[rows])
+                Ju[rows] = JuT[rows].transpose(0, 2, 1)
+                Js[rows] = JsT[rows].transpose(0, 2, 1)
 
         self.engines.map(work, 1, p.T - 1)
         if not with_jacobians:
             return Terms(a[1:-1], u, known, s)
         da = np.stack([-d1[:-1], d1[1:] - d2[:-1], d2[1:]], axis=1) / h**2
-        return Terms(a[1:-1], u, known, s, JuT.transpose(0, 2, 1), JsT.transpose(0, 2, 1), da)
+        return Terms(a[1:-1], u, known, s, Ju, Js, da)
 
     def dense(self, C: np.ndarray) -> np.ndarray:
         """A dofwise Jacobian (K, keys, nv, 3) by key and dof group as (K, nv, keys·nv)."""

@@ -13,7 +13,7 @@ from estimator.problem import (
     Problem,
     retract,
 )
-from estimator.solver.covariance import parameter_sensitivity, rows_at
+from estimator.solver.covariance import CONSIDER_STEP, parameter_sensitivities, rows_at
 from estimator.solver.window import WindowResult, solve_window
 from physics.softness import scale as scale_softness
 
@@ -62,7 +62,9 @@ def fit_softness(
         if system is None or not result.blocks:
             break
         r = rows_at(problem, problem.model, result)
-        parts = [parameter_sensitivity(problem, result, system, name, r) for name in names]
+        parts = parameter_sensitivities(
+            problem, result, system, [(name, CONSIDER_STEP) for name in names], r
+        )
         D = np.array([[_dot(a[0], b[0]) for b in parts] for a in parts])
         D += np.eye(2) / sigma**2
         CS = np.array([[np.sum(a[1] * b[2]) for b in parts] for a in parts])  # Cᵀ S = −Cᵀ H⁻¹ C
