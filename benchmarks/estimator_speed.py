@@ -1,20 +1,22 @@
 """Speed and memory of the estimator: wall time over log duration, overhead over the bare MuJoCo
-linearization it needs, and peak memory.
+linearization it needs, and peak memory, on two logs in one run.
 
-    python benchmarks/estimator_speed.py [--minutes M] [--condition NAME]
-        [--also-init INIT ...] [--out DIR]
+    python benchmarks/estimator_speed.py [--minutes M] [--quadruped-seconds S]
+        [--condition NAME] [--also-init INIT ...] [--out DIR]
 
-Simulates an M-minute humanoid_push log (default 10, in a separate process; --condition: as
-`physfuse simulate --condition`, default the scenario as its sample recording, with mocap
-dropouts), estimates it with the default settings, and
-measures in the same run the bare cost of the MuJoCo work the solve needed: the same number of
-knot passes of mjd_inverseFD (with Jacobians) and mj_inverse (without) — the MuJoCo calls
-alone, on the same 2 threads, timed over every knot of the log before the estimate (at the
-interpolated measurements) and after it (at the estimate), their mean; both are reported,
-since a shared machine's speed drifts. --also-init: after the default estimate, the same log
-estimated again with each of these starts (`init`), wall time and passes, in the same run.
-Prints a table and writes DIR/estimator_speed.json.
-Peak memory is this process's maximum RSS (reading the log, timing and estimating).
+Simulates (each in a separate process) an M-minute humanoid_push log (default 1; 100 Hz
+knots) and an S-second log of MuJoCo Menagerie's Go2 quadruped (default 30; 500 Hz knots,
+`physfuse simulate --model physics/models/menagerie/go2.xml`; 0: none), --condition as
+`physfuse simulate --condition` (default the scenario as its sample recording, with mocap
+dropouts), estimates each with the default settings, and measures in the same run the bare
+cost of the MuJoCo work the solve needed: the same number of knot passes of mjd_inverseFD
+(with Jacobians) and mj_inverse (without) — the MuJoCo calls alone, on the same 2 threads,
+timed over every knot of the log before the estimate (at the interpolated measurements) and
+after it (at the estimate), their mean; both are reported, since a shared machine's speed
+drifts. --also-init: after the default estimate, the same log estimated again with each of
+these starts (`init`), wall time and passes, in the same run. Prints a table and writes
+DIR/estimator_speed.json. Peak memory is this process's maximum RSS up to that log's
+estimate (reading the log, timing and estimating; the humanoid's first).
 """
 
 from __future__ import annotations
@@ -92,17 +94,22 @@ def starts_row(summary, wall: float) -> dict:
     }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--minutes", type=float, default=10.0)
-    parser.add_argument("--condition", help="simulate under this condition (physfuse simulate)")
-    parser.add_argument(
-        "--also-init", nargs="+", default=[], choices=CHOICES["init"], metavar="INIT"
-    )
-    parser.add_argument("--out", type=Path, default=Path("out/bench"))
-    args = parser.parse_args()
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = f"humanoid_push_{args.minutes:g}min" + (f"_{args.condition}" if args.condition else "")
+LOGS = {  # name → `physfuse simulate` arguments (before --duration)
+    "humanoid_push": ["humanoid_push"],
+    "go2": [
+        "--model",
+        "physics/models/menagerie/go2.xml",
+        "--excitation",
+        "0.1",
+        "--pushes",
+        "base",
+    ],
+}
+
+
+def measure(name: str, seconds: float, args: argparse.Namespace) -> tuple[dict, list]:
+    """Simulate `name` for `seconds`, estimate it, time the bare MuJoCo work: (JSON, rows)."""
+    stem = f"{name}_{seconds:g}s" + (f"_{args.condition}" if args.condition else "")
     log, config_path = args.out / f"{stem}.mcap", args.out / f"{stem}.toml"
     condition = ["--condition", args.condition] if args.condition else []
     subprocess.run(
@@ -111,11 +118,11 @@ def main() -> None:
             "-m",
             "estimator.cli",
             "simulate",
-            "humanoid_push",
+            *LOGS[name],
             "--seed",
             "0",
             "--duration",
-            str(60 * args.minutes),
+            str(seconds),
             "--out",
             str(log),
             "--config-out",
@@ -143,7 +150,9 @@ def main() -> None:
     bare = per_jac * summary.knots_linearized + per_eval * summary.knots_evaluated
     two_starts = sum(len(tried) > 1 for tried in summary.starts_tried)
     result = {
+        "log": name,
         "condition": args.condition or "sample recording",
+        "knot_rate_hz": 1.0 / float(summary.h),
         "log_duration_s": float(summary.duration_s),
         "knots": summary.knots,
         "windows": summary.windows,
@@ -164,9 +173,10 @@ def main() -> None:
     }
     rows = [
         (
-            "log duration",
-            f"{result['log_duration_s']:.0f} s ({result['knots']} knots, "
-            f"{result['windows']} windows, {two_starts} of them solved from two starts)",
+            "log",
+            f"{result['log_duration_s']:.0f} s at {result['knot_rate_hz']:.0f} Hz "
+            f"({result['knots']} knots, {result['windows']} windows, {two_starts} of them "
+            "solved from two starts)",
         ),
         ("estimate wall time", f"{wall:.1f} s = {result['wall_over_duration']:.2f}× the log"),
         (
@@ -196,9 +206,35 @@ def main() -> None:
                 f"{row['windows_solved_from_two_starts']} windows from two starts",
             )
         )
-    for name, value in rows:
-        print(f"{name:28s} {value}")
-    (args.out / "estimator_speed.json").write_text(json.dumps(result, indent=2) + "\n")
+    return result, rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--minutes", type=float, default=1.0, help="the humanoid's log")
+    parser.add_argument(
+        "--quadruped-seconds", type=float, default=30.0, help="the Go2's log (0: none)"
+    )
+    parser.add_argument("--condition", help="simulate under this condition (physfuse simulate)")
+    parser.add_argument(
+        "--also-init", nargs="+", default=[], choices=CHOICES["init"], metavar="INIT"
+    )
+    parser.add_argument("--out", type=Path, default=Path("out/bench"))
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    logs = [("humanoid_push", 60 * args.minutes)]
+    if args.quadruped_seconds > 0:
+        logs.append(("go2", args.quadruped_seconds))
+    results, tables = {}, []
+    for name, seconds in logs:
+        results[name], rows = measure(name, seconds, args)
+        tables.append(rows)
+    width = max(len(v) for rows in tables for _, v in rows)
+    print(f"{'':28s} " + " | ".join(f"{name:{width}s}" for name, _ in logs))
+    for i, (label, _) in enumerate(tables[0]):
+        values = [rows[i][1] if i < len(rows) else "" for rows in tables]
+        print(f"{label:28s} " + " | ".join(f"{v:{width}s}" for v in values))
+    (args.out / "estimator_speed.json").write_text(json.dumps(results, indent=2) + "\n")
     print(f"wrote {args.out / 'estimator_speed.json'}")
 
 
