@@ -63,11 +63,14 @@ def bare_pass_seconds(
     nv, ns = model.nv, model.nsensordata
     out = [np.zeros((nv, nv)) for _ in range(3)] + [np.zeros((nv, ns)) for _ in range(3)]
 
+    commanded = np.isfinite(problem.ctrl).any(axis=1) if problem.ctrl.shape[1] else []
+
     def work(chunk: range, worker: KnotEngine, jac: bool) -> None:
         outs = [o.copy() for o in out]
         for k in chunk:
             worker.inverse(qpos[k], v[k], a[k])
-            problem.u_known(worker.data, k, jac)
+            if len(commanded) and commanded[k]:  # the commands' actuation (mj_fwdActuation)
+                problem.actuation(worker.data, k)
             if jac:
                 worker.derivatives(qpos[k], v[k], a[k], *outs)
 

@@ -95,10 +95,6 @@ class Problem:
         qfrc, dq, dv = commanded_force(self.model, data, self.ctrl[k], jacobians)
         return self.qfrc_known[k] + qfrc, dq, dv
 
-    def commanded(self, k: int) -> bool:
-        """Whether knot k has a command for some actuator."""
-        return bool(np.isfinite(self.ctrl[k]).any())
-
     def actuation(self, data: mujoco.MjData, k: int) -> tuple[np.ndarray, np.ndarray]:
         """MuJoCo's actuation of knot k's commands at data's state (`actuation_at`), for
         `u_known_of`."""

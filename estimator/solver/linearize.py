@@ -147,7 +147,8 @@ class Linearizer:
 
         keep = self.derivatives
 
-        commands = p.ctrl.shape[1] > 0 and bool(np.isfinite(p.ctrl[1:-1]).any())
+        commanded = np.isfinite(p.ctrl).any(axis=1) if p.ctrl.shape[1] else np.zeros(p.T, bool)
+        commands = bool(commanded[1:-1].any())
         nu = p.model.nu
 
         def work(engine: KnotEngine, chunk: range) -> None:
@@ -158,7 +159,7 @@ class Linearizer:
             for k in chunk:
                 i = k - 1
                 u[i], s[i] = engine.inverse(qpos[k], v[k], a[k])
-                if commands and p.commanded(k):
+                if commanded[k]:
                     j = k - chunk.start
                     moment[j], force[j] = p.actuation(engine.data, k)
                 if with_jacobians:
