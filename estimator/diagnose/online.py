@@ -33,7 +33,12 @@ from estimator.diagnose.detect import (
     local_scale,
     robust_mean_cov,
 )
-from estimator.diagnose.unmodeled import UnmodeledForces, unmodeled_forces
+from estimator.diagnose.unmodeled import (
+    CONTACT_MARGIN_M,
+    UnmodeledForces,
+    unmodeled_forces,
+    with_margin,
+)
 from estimator.estimate import Estimate
 
 CALIBRATE_S = 2.0  # windows before the first test
@@ -53,7 +58,7 @@ class OnlineDetector:
         settings: DetectorSettings | None = None,
     ) -> None:
         self.settings = replace(settings or DetectorSettings(), causal=True)
-        self.model = model
+        self.model = with_margin(model, CONTACT_MARGIN_M)  # once, not per update
         self.sigma_f, self.h = sigma_f, h
         self.L = max(1, round(self.settings.window_s / h))
         self.keep = round(HISTORY_S / h)
@@ -83,7 +88,7 @@ class OnlineDetector:
         knots = [k for k in knots if not self.t_ns or est.t_ns[k] > self.t_ns[-1]]
         if not knots:
             return []
-        forces = unmodeled_forces(self.model, est, sigma, self.sigma_f, knots=knots)
+        forces = unmodeled_forces(self.model, est, sigma, self.sigma_f, 0.0, knots=knots)
         if not self.bodies:
             self.bodies, self.body_ids = forces.bodies, forces.body_ids
             B = len(self.bodies)

@@ -164,7 +164,10 @@ def knot_residual(
 
 
 def with_margin(model: mujoco.MjModel, contact_margin: float) -> mujoco.MjModel:
-    """A copy of `model` whose geoms count as touching `contact_margin` [m] apart."""
+    """A copy of `model` whose geoms count as touching `contact_margin` [m] apart (0: the
+    model itself, e.g. one that has its margin already)."""
+    if contact_margin == 0:
+        return model
     model = copy.deepcopy(model)
     model.geom_margin += contact_margin
     return model
