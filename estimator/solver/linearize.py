@@ -210,7 +210,8 @@ class Linearizer:
         out = [physics.rows(p, t, bias, robust), motion.acceleration_prior(p, t)]
         if self.span == 4:
             out.append(motion.jerk_prior(p, t, robust))
-        out += [measurement.rows(p, t, bias, sensor, robust) for sensor in p.blocks]
+        # the sensors' blocks on the engines' threads (numpy releases the GIL), in order
+        out += self.pool.map(lambda sensor: measurement.rows(p, t, bias, sensor, robust), p.blocks)
         return out
 
     def cost(self, qpos: np.ndarray, bias: np.ndarray) -> tuple[float, dict[str, float]]:
