@@ -18,6 +18,7 @@ from estimator.knots import knot_grid
 from estimator.problem import build_problem, u_known_along
 from estimator.run import initial_trajectory
 from estimator.settings import Settings
+from estimator.solver.linearize import Linearizer
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -146,3 +147,28 @@ def test_physics_factor_jacobian_with_state_dependent_actuation(tmp_path):
         f"worst physics row {np.unravel_index(physics.argmax(), physics.shape)}"
     )
     assert error.max() < 2e-3
+
+
+def test_the_linearizer_batches_the_commands_forces_as_knot_by_knot(tmp_path):
+    """u_known over a window's knots in one batch (`Problem.u_known_of`, each chunk of the
+    linearization's threads) equals `Problem.u_known` knot by knot, clamped actuators and
+    knots and actuators without a command included."""
+    model_path = quadruped_with_actuators(tmp_path)
+    config = load_config(
+        config_for_model(ROOT / "configs" / "quadruped_trot.toml", model_path, tmp_path)
+    )
+    log = read_log(ROOT / "recordings" / "quadruped_trot.mcap", config)
+    t_ns = knot_grid(log.measurements, 0.005)[100:160]
+    problem = build_problem(config, log.measurements, Settings(), t_ns)
+    problem.ctrl[20:25] = np.nan  # knots without commands
+    problem.ctrl[30, :3] = 1e3  # beyond ctrlrange: clamped
+    problem.ctrl[40, 3:6] = np.nan  # some actuators without a command
+    qpos = initial_trajectory(problem.model, log.measurements, t_ns)
+    lin = Linearizer(problem)
+    try:
+        batched = lin.terms(qpos, True).known
+    finally:
+        lin.close()
+    knot_by_knot = u_known_along(problem, qpos)[1:-1]
+    assert np.isfinite(problem.ctrl[1:-1]).any(axis=1).sum() < problem.T - 2
+    np.testing.assert_allclose(batched, knot_by_knot, rtol=1e-12, atol=1e-9)
