@@ -51,9 +51,12 @@ class KnotEngine:
             u = self.reference.inverse(q, v, a).qfrc_inverse
         return u, d.sensordata.copy()
 
-    def derivatives(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, *out: np.ndarray) -> None:
+    def derivatives(
+        self, q: np.ndarray, v: np.ndarray, a: np.ndarray, *out: np.ndarray | None
+    ) -> None:
         """`mjd_inverseFD` at (q, v, a) into out = (DfDq, DfDv, DfDa) (nv, nv) and (DsDq,
-        DsDv, DsDa) (nv, ns)."""
+        DsDv, DsDa) (nv, ns); None: not needed (MuJoCo skips the v or a differences when
+        nothing asks for them)."""
         d = self.data
         d.qpos[:], d.qvel[:], d.qacc[:] = q, v, a
         mujoco.mjd_inverseFD(self.model, d, self.eps, False, *out, None)

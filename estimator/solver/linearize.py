@@ -97,6 +97,15 @@ class Linearizer:
             self.group_cols[d : d + 3] = d + np.arange(3)
             self.group_mask[d : d + 3] = True
         self.span = 4 if problem.settings.jerk_prior_std > 0 else 3  # keys a knot's rows reach
+        # which of mjd_inverseFD's derivatives the rows use: u's where a physics row has a σ
+        # (not in the kinematic smoother), the sensors' by v and a only for velocity- and
+        # acceleration-stage sensors (a manipulator's mocap and encoders need ∂s/∂q alone)
+        physics = bool(np.isfinite(problem.physics_sigma[1:-1]).any())
+        stages = {block.stage for block in problem.blocks}
+        self.wanted = (
+            (physics, physics, physics),
+            (True, bool(stages & {"vel", "acc"}), "acc" in stages),
+        )
         self.passes = {True: 0, False: 0}  # MuJoCo passes over all knots, with/without Jacobians
 
     # -- MuJoCo at every knot (threads; MuJoCo releases the GIL) ------------------------------
@@ -167,7 +176,12 @@ class Linearizer:
                     if kept is not None:
                         F[:, i], S[:, i] = kept
                     else:
-                        engine.derivatives(qpos[k], v[k], a[k], *F[:, i], *S[:, i])
+                        outs = [
+                            D[j, i] if wanted[j] else None
+                            for D, wanted in zip((F, S), self.wanted, strict=True)
+                            for j in range(3)
+                        ]
+                        engine.derivatives(qpos[k], v[k], a[k], *outs)
                         if keep is not None:
                             keep.put(self.first + k, qpos[k], v[k], a[k], F[:, i], S[:, i])
             if not commands:
