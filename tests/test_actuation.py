@@ -15,7 +15,7 @@ from estimator.cli import main
 from estimator.config import load_config
 from estimator.io.logs import read_log
 from estimator.knots import knot_grid
-from estimator.problem import build_problem, u_known_along
+from estimator.problem import Problem, build_problem, u_known_along
 from estimator.run import initial_trajectory
 from estimator.settings import Settings
 from estimator.solver.linearize import Linearizer
@@ -94,14 +94,7 @@ def test_commanded_force_jacobians_match_numerical_differentiation(variant, seed
 
 def test_known_force_follows_the_estimate_not_the_rest_pose(variant, tmp_path):
     """u_known of a position actuator at a knot is kp (ctrl − q_k) − kv v_k at that knot."""
-    model_path = quadruped_with_actuators(tmp_path)
-    config = load_config(
-        config_for_model(ROOT / "configs" / "quadruped_trot.toml", model_path, tmp_path)
-    )
-    log = read_log(ROOT / "recordings" / "quadruped_trot.mcap", config)
-    t_ns = knot_grid(log.measurements, 0.005)[100:140]
-    problem = build_problem(config, log.measurements, Settings(), t_ns)
-    qpos = initial_trajectory(problem.model, log.measurements, t_ns)
+    problem, qpos = _trot_window(tmp_path, slice(100, 140))
     known = u_known_along(problem, qpos)
     m = problem.model
     knee = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "front_left_knee")
@@ -153,17 +146,10 @@ def test_the_linearizer_batches_the_commands_forces_as_knot_by_knot(tmp_path):
     """u_known over a window's knots in one batch (`Problem.u_known_of`, each chunk of the
     linearization's threads) equals `Problem.u_known` knot by knot, clamped actuators and
     knots and actuators without a command included."""
-    model_path = quadruped_with_actuators(tmp_path)
-    config = load_config(
-        config_for_model(ROOT / "configs" / "quadruped_trot.toml", model_path, tmp_path)
-    )
-    log = read_log(ROOT / "recordings" / "quadruped_trot.mcap", config)
-    t_ns = knot_grid(log.measurements, 0.005)[100:160]
-    problem = build_problem(config, log.measurements, Settings(), t_ns)
+    problem, qpos = _trot_window(tmp_path, slice(100, 160))
     problem.ctrl[20:25] = np.nan  # knots without commands
     problem.ctrl[30, :3] = 1e3  # beyond ctrlrange: clamped
     problem.ctrl[40, 3:6] = np.nan  # some actuators without a command
-    qpos = initial_trajectory(problem.model, log.measurements, t_ns)
     lin = Linearizer(problem)
     try:
         batched = lin.terms(qpos, True).known
@@ -172,3 +158,16 @@ def test_the_linearizer_batches_the_commands_forces_as_knot_by_knot(tmp_path):
     knot_by_knot = u_known_along(problem, qpos)[1:-1]
     assert np.isfinite(problem.ctrl[1:-1]).any(axis=1).sum() < problem.T - 2
     np.testing.assert_allclose(batched, knot_by_knot, rtol=1e-12, atol=1e-9)
+
+
+def _trot_window(tmp_path: Path, knots: slice) -> tuple[Problem, np.ndarray]:
+    """The quadruped_trot recording's problem on `knots` of its grid with the variant
+    quadruped's actuators, and the measurements' start there."""
+    model_path = quadruped_with_actuators(tmp_path)
+    config = load_config(
+        config_for_model(ROOT / "configs" / "quadruped_trot.toml", model_path, tmp_path)
+    )
+    log = read_log(ROOT / "recordings" / "quadruped_trot.mcap", config)
+    t_ns = knot_grid(log.measurements, 0.005)[knots]
+    problem = build_problem(config, log.measurements, Settings(), t_ns)
+    return problem, initial_trajectory(problem.model, log.measurements, t_ns)
