@@ -2,7 +2,7 @@
 through a real TCP socket (`physfuse replay` → `physfuse stream`, two processes on loopback).
 
     .venv/bin/python benchmarks/stream_latency.py [--recordings humanoid_push quadruped_trot]
-        [--lag 0.5] [--out DIR]
+        [--lag 0.5] [--iterations 2 ...] [--out DIR]
 
 Per recording: the update latency (from the arrival of the sample that made a knot ready to
 the publication of its newest estimate) p50 / p99 / max; the backlog (knots ready and not yet
@@ -10,8 +10,9 @@ solved when a solve starts) over the first and the last third of the run, and it
 the errors of the newest (`/estimate`) and of the smoothed (`/estimate_smoothed`) estimate
 against the ground truth, next to the batch estimate's (`physfuse estimate` with the same
 settings: the model's own contact softness); and the throughput at `--rate 0` (the log as
-fast as the replay sends it), in knots per second. Prints a table and writes
-DIR/stream_latency.json.
+fast as the replay sends it), in knots per second. --iterations: the node's iterations per
+update (`physfuse stream --iterations`); several values give a row each, in one run. Prints
+a table and writes DIR/stream_latency.json.
 """
 
 from __future__ import annotations
@@ -43,10 +44,11 @@ PHYSFUSE = [sys.executable, "-m", "estimator.cli"]
 METRICS = ("position_mm", "orientation_deg", "joint_deg", "linear_velocity_mps")
 
 
-def streamed(name: str, rate: float, lag: float, work: Path) -> dict:
+def streamed(name: str, rate: float, lag: float, iterations: int, work: Path) -> dict:
     """One replay → stream run: the node's --stats and its output file."""
     log, config = ROOT / "recordings" / f"{name}.mcap", ROOT / "configs" / f"{name}.toml"
-    out, stats = work / f"{name}_{rate:g}.mcap", work / f"{name}_{rate:g}.json"
+    tag = f"{name}_{rate:g}_{iterations}"
+    out, stats = work / f"{tag}.mcap", work / f"{tag}.json"
     replay = subprocess.Popen(
         [*PHYSFUSE, "replay", str(log), "--to", "tcp://127.0.0.1:0", "--rate", str(rate)],
         cwd=ROOT,
@@ -69,6 +71,8 @@ def streamed(name: str, rate: float, lag: float, work: Path) -> dict:
             str(stats),
             "--lag",
             str(lag),
+            "--iterations",
+            str(iterations),
             "--quiet",
         ],
         cwd=ROOT,
@@ -111,21 +115,32 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--recordings", nargs="+", default=["humanoid_push", "quadruped_trot"])
     parser.add_argument("--lag", type=float, default=0.5)
+    parser.add_argument(
+        "--iterations",
+        type=int,
+        nargs="+",
+        default=[2],
+        help="the node's Levenberg–Marquardt iterations per update; several: a row each",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "out" / "stream_latency")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
+    batches: dict[str, dict[str, float]] = {}  # one batch estimate per recording
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        for name in args.recordings:
-            live = streamed(name, 1.0, args.lag, work)
-            fast = streamed(name, 0.0, args.lag, work)
+        for name, iterations in [(n, i) for n in args.recordings for i in args.iterations]:
+            live = streamed(name, 1.0, args.lag, iterations, work)
+            fast = streamed(name, 0.0, args.lag, iterations, work)
             s = live["stats"]
             lat = np.array(s["latency_s"]) * 1e3
             first, last = thirds(s["backlog"])
+            if name not in batches:
+                batches[name] = batch(name, work)
             rows.append(
                 {
                     "recording": name,
+                    "iterations": iterations,
                     "knot_ms": s["knot_s"] * 1e3,
                     "knots": s["counts"]["knots_newest"],
                     "updates": s["counts"]["updates"],
@@ -141,14 +156,14 @@ def main() -> None:
                     / fast["stats"]["wall_s"],
                     "newest": errors(live["out"], "/estimate", name),
                     "smoothed": errors(live["out"], "/estimate_smoothed", name),
-                    "batch": batch(name, work),
+                    "batch": batches[name],
                     "divergences": s["counts"]["divergences"],
                     "late": s["counts"]["late"],
                 }
             )
-            print(f"{name}: done", file=sys.stderr)
+            print(f"{name}, {iterations} iteration(s): done", file=sys.stderr)
     print(
-        f"{'recording':15s} {'knot':>5s} {'p50 ms':>7s} {'p99 ms':>7s} "
+        f"{'recording':15s} {'it':>2s} {'knot':>5s} {'p50 ms':>7s} {'p99 ms':>7s} "
         f"{'backlog 1st/last':>17s} {'thru k/s':>8s} | {'pos mm new / smooth / batch':>28s} | "
         f"{'joint ° new / smooth / batch':>30s}"
     )
@@ -156,7 +171,8 @@ def main() -> None:
         p = [r[k]["position_mm"] for k in ("newest", "smoothed", "batch")]
         j = [r[k]["joint_deg"] for k in ("newest", "smoothed", "batch")]
         print(
-            f"{r['recording']:15s} {r['knot_ms']:5.1f} {r['latency_p50_ms']:7.0f} "
+            f"{r['recording']:15s} {r['iterations']:2d} {r['knot_ms']:5.1f} "
+            f"{r['latency_p50_ms']:7.0f} "
             f"{r['latency_p99_ms']:7.0f} "
             f"{r['backlog_first_third']:8.1f}/{r['backlog_last_third']:<8.1f} "
             f"{r['throughput_knots_per_s']:8.0f} | {p[0]:8.4f} {p[1]:8.4f} {p[2]:8.4f}   | "
