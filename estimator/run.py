@@ -42,7 +42,7 @@ from estimator.settings import Settings
 from estimator.solver.covariance import with_covariance
 from estimator.solver.linearize import Linearizer
 from estimator.solver.softness_fit import fit_softness
-from estimator.solver.window import follow, solve_window
+from estimator.solver.window import WindowResult, follow, solve_window
 from physics.dynamics import make_dynamics
 from physics.model import weight as model_weight
 from physics.result import Constraints, Contacts
@@ -172,15 +172,12 @@ def smooth(
         kinematic_start = settings.init in ("kinematic", "best") or (
             settings.init == "best_across_gaps" and bool(fill.any())
         )
-        if kinematic_start and settings.method == "physics":
-            # (its bias dims are the physics problem's first: no model-error offset)
-            first = build_problem(
-                config, window, replace(settings, method="kinematic"), t_ns[s:e], compiled
+        physics = settings.method == "physics"
+        if kinematic_start and physics:
+            stage, kinematic = _kinematic_start(
+                config, window, settings, t_ns[s:e], compiled, init_q, init_b
             )
-            stages.append(solve_window(first, init_q, init_b[:, : first.nb], covariance=False))
-            kinematic_b = init_b.copy()
-            kinematic_b[:, : first.nb] = stages[0].bias
-            kinematic = (stages[0].qpos, kinematic_b)
+            stages.append(stage)
             if settings.init == "kinematic":
                 starts_at = {"kinematic": kinematic}
             else:
@@ -194,6 +191,21 @@ def smooth(
             name: solve_window(problem, q0, b0, False, prior=prior, marginalize=joins)
             for name, (q0, b0) in starts_at.items()
         }
+        # "best_across_gaps": a solve from the measurements that did not converge (a start
+        # the redescending kernels hold, as the Panda's box at 2 kHz) from both starts too
+        if (
+            settings.init == "best_across_gaps"
+            and physics
+            and "kinematic" not in solved
+            and not solved["measurements"].converged
+        ):
+            stage, kinematic = _kinematic_start(
+                config, window, settings, t_ns[s:e], compiled, init_q, init_b
+            )
+            stages.append(stage)
+            solved["kinematic"] = solve_window(
+                problem, *kinematic, False, prior=prior, marginalize=joins
+            )
         stages += solved.values()
         # "best": the solution of lower cost; its covariance alone
         kept = min(solved, key=lambda name: solved[name].cost_final)
@@ -245,6 +257,24 @@ def smooth(
     return est, replace(
         summary, softness_fit=fitted, window_starts=window_starts, starts_tried=starts_tried
     )
+
+
+def _kinematic_start(
+    config: Config,
+    window: Mapping[str, Measurement],
+    settings: Settings,
+    t_ns: np.ndarray,
+    compiled: tuple[mujoco.MjModel, dict[str, list[str]]],
+    init_q: np.ndarray,
+    init_b: np.ndarray,
+) -> tuple[WindowResult, tuple[np.ndarray, np.ndarray]]:
+    """The kinematic smoother's solution of a window, the physics solve's second start (its
+    bias dims are the physics problem's first: no model-error offset)."""
+    first = build_problem(config, window, replace(settings, method="kinematic"), t_ns, compiled)
+    stage = solve_window(first, init_q, init_b[:, : first.nb], covariance=False)
+    bias = init_b.copy()
+    bias[:, : first.nb] = stage.bias
+    return stage, (stage.qpos, bias)
 
 
 @dataclass(frozen=True)
@@ -405,6 +435,7 @@ def initial_trajectory(
     qpos = np.tile(home, (T, 1))
     measured = np.zeros((T, model.nq), dtype=bool)
     held_ns = np.zeros(model.nq)  # the longest hold at an end that is no gap, by coordinate
+    tracked = []  # poses of bodies below a free joint: (element type, name, (T, 7) pose)
     for m in measurements.values():
         if not len(m):
             continue
@@ -413,6 +444,7 @@ def initial_trajectory(
             values = interpolated_at_knots(m, t_ns)
             for e, name in enumerate(m.elements):
                 _set_free_pose(model, qpos, measured, m.element_type, name, values[:, e])
+                tracked.append((m.element_type, name, values[:, e]))
         elif m.kind == "markers":
             _fit_markers(model, qpos, measured, m, interpolated_at_knots(m, t_ns))
         elif m.kind == "joint_state":
@@ -425,6 +457,7 @@ def initial_trajectory(
                 measured[ok, adr] = True
         period = np.median(np.diff(m.t_ns)) if len(m) > 1 else 0.0
         held_ns[measured.any(axis=0) & ~before] = 2.5 * period
+    _free_poses_through_joints(model, qpos, measured, tracked)
     if measured_out is not None:
         measured_out[:] = measured
     _fill_gaps(model, qpos, measured)
@@ -488,6 +521,59 @@ def _set_free_pose(
         qpos[k, adr : adr + 3] = pose[k, :3] - rot.reshape(3, 3) @ local_pos
         qpos[k, adr + 3 : adr + 7] = quat
         measured[k, adr : adr + 7] = True
+
+
+def _free_poses_through_joints(
+    model: mujoco.MjModel,
+    qpos: np.ndarray,
+    measured: np.ndarray,
+    tracked: list[tuple[str, str, np.ndarray]],
+) -> None:
+    """A free joint's pose where its own body is not measured (an occlusion, a dropout) from a
+    tracked body below it whose joints up to it are measured (encoders): T_root =
+    T_tracked · T_root→tracked⁻¹, the second by forward kinematics with the root at the
+    origin — a humanoid's torso through its pelvis, not interpolated across the gap."""
+    data = None
+    for element_type, name, pose in tracked:
+        if element_type == "site":
+            site = mujoco.mj_name2id(model, _OBJ.mjOBJ_SITE, name)
+            body = int(model.site_bodyid[site])
+        else:
+            site, body = -1, mujoco.mj_name2id(model, _OBJ.mjOBJ_BODY, name)
+        chain, root = [], body  # the joints between the body and its free joint's body
+        while root > 0 and _free_joint_of(model, root) < 0:
+            chain += [int(model.jnt_qposadr[j]) for j in _joints_of(model, root)]
+            root = int(model.body_parentid[root])
+        adr = _free_joint_of(model, root) if root > 0 else -1
+        if adr < 0 or root == body:
+            continue
+        knots = ~measured[:, adr] & np.all(np.isfinite(pose), axis=1)
+        knots &= measured[:, chain].all(axis=1) if chain else True
+        if not knots.any():
+            continue
+        if data is None:
+            data = mujoco.MjData(model)
+        for k in np.flatnonzero(knots):
+            data.qpos[:] = qpos[k]
+            data.qpos[adr : adr + 7] = [0, 0, 0, 1, 0, 0, 0]
+            mujoco.mj_kinematics(model, data)
+            if site >= 0:
+                p_rel, R_rel = data.site_xpos[site], data.site_xmat[site].reshape(3, 3)
+            else:
+                p_rel, R_rel = data.xpos[body], data.xmat[body].reshape(3, 3)
+            R_world = np.zeros(9)
+            mujoco.mju_quat2Mat(R_world, pose[k, 3:7])
+            R_root = R_world.reshape(3, 3) @ R_rel.T
+            quat = np.zeros(4)
+            mujoco.mju_mat2Quat(quat, R_root.reshape(-1))
+            qpos[k, adr : adr + 3] = pose[k, :3] - R_root @ p_rel
+            qpos[k, adr + 3 : adr + 7] = quat
+            measured[k, adr : adr + 7] = True
+
+
+def _joints_of(model: mujoco.MjModel, body: int) -> range:
+    start = int(model.body_jntadr[body])
+    return range(start, start + int(model.body_jntnum[body])) if start >= 0 else range(0)
 
 
 def _fit_markers(

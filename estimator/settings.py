@@ -121,11 +121,12 @@ class Settings:
         30, "Levenberg–Marquardt iterations per solve (a window has up to 3)", positive=True
     )
     init: str = setting(
-        "best",
-        "where each window's physics solve starts: measurements (interpolated to the knots) | "
-        "kinematic (the kinematic smoother's solution of the window) | best (from both; the "
-        "solution of lower cost) | best_across_gaps (both only in a window where the "
-        "measurements' start has a gap, else the measurements: one solve where every "
+        "best_across_gaps",
+        "where each window's physics solve starts: measurements (interpolated to the knots; a "
+        "free body's lost pose through a tracked body below it) | kinematic (the kinematic "
+        "smoother's solution of the window) | best (from both; the solution of lower cost) | "
+        "best_across_gaps (both only in a window where the measurements' start has a gap or "
+        "its solve does not converge, else the measurements: one solve where every "
         "coordinate is measured)",
         choices=("measurements", "kinematic", "best", "best_across_gaps"),
     )
