@@ -121,7 +121,7 @@ class Settings:
         30, "Levenberg–Marquardt iterations per solve (a window has up to 3)", positive=True
     )
     init: str = setting(
-        "best_across_gaps",
+        "best",
         "where each window's physics solve starts: measurements (interpolated to the knots; a "
         "free body's lost pose through a tracked body below it) | kinematic (the kinematic "
         "smoother's solution of the window) | best (from both; the solution of lower cost) | "

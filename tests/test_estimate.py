@@ -368,15 +368,17 @@ def test_init_best_keeps_the_lower_cost_of_both_starts(estimated, tmp_path):
 
 
 def test_init_best_across_gaps_solves_once_where_every_coordinate_is_measured(estimated, tmp_path):
-    """The default, init = "best_across_gaps": one solve, from the measurements, where every
+    """init = "best_across_gaps": one solve, from the measurements, where every
     coordinate of the start is measured — the `estimated` log's torso mocap stops 0.5 s before
     its end, and the pelvis' mocap carries the torso's start through the joints; both starts,
     as "best", where the start has a gap (the torso alone tracked) or where the solve from
     the measurements does not converge (two iterations)."""
-    out, log, config = estimated
-    default = json.loads((out / "summary.json").read_text())
-    assert default["settings"]["init"] == "best_across_gaps"
-    assert default["starts_tried"] == [["measurements"]]
+    _, log, config = estimated
+    argv = ["estimate", str(log), "--config", str(config), "--init", "best_across_gaps"]
+    assert main([*argv, "--out", str(tmp_path / "filled"), "--quiet"]) == 0
+    filled = json.loads((tmp_path / "filled" / "summary.json").read_text())
+    assert filled["settings"]["init"] == "best_across_gaps"
+    assert filled["starts_tried"] == [["measurements"]]
 
     torso_alone = tmp_path / "torso_alone.toml"
     text = config.read_text()
@@ -393,7 +395,8 @@ def test_init_best_across_gaps_solves_once_where_every_coordinate_is_measured(es
     assert with_gap["starts_tried"] == best["starts_tried"] == [["kinematic", "measurements"]]
     assert with_gap["cost_by_type"] == best["cost_by_type"]
 
-    argv = ["estimate", str(log), "--config", str(config), "--iterations", "2"]
+    argv = ["estimate", str(log), "--config", str(config), "--init", "best_across_gaps"]
+    argv += ["--iterations", "2"]
     assert main([*argv, "--out", str(tmp_path / "unconverged"), "--quiet"]) == 0
     unconverged = json.loads((tmp_path / "unconverged" / "summary.json").read_text())
     assert unconverged["starts_tried"] == [["measurements", "kinematic"]]

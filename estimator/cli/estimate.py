@@ -108,10 +108,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--init",
         choices=CHOICES["init"],
-        help="where each window's physics solve starts (default: config/best_across_gaps, "
-        "from the measurements, and also from the kinematic smoother's solution, the lower "
-        "cost kept, where the measurements have a gap or that solve does not converge; best: "
-        "from both everywhere; measurements: one solve)",
+        help="where each window's physics solve starts (default: config/best, from the "
+        "kinematic smoother's solution and from the measurements, the lower cost kept; "
+        "best_across_gaps: both only where the measurements have a gap or that solve does not "
+        "converge; measurements: one solve)",
     )
     add_start_pose_argument(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
