@@ -16,6 +16,12 @@ machine, and a worker killed mid-task.
    retried; the retried estimate against a single process's estimate of the same log.
 5. `physfuse calibrate` of recordings/humanoid_push.mcap (its first `--calibrate-s` s) in one
    process, then with `--workers 2`: wall times and the two profiles against each other.
+6. An hour-long humanoid_push log (`--hour-s`, default 3600 s; simulated once into OUT/hour):
+   physics, one process, then `--chunk --workers 2`: wall time and peak memory of each (the
+   sum over the process and every process it started — Ray's included — of their
+   proportional set size, sampled every `MEMORY_EVERY_S`), and the chunked estimate against
+   the single-process one in units of its reported σ. A run whose folder holds its estimate
+   and memory record is not run again (`rm -r OUT/hour/<run>` to redo it).
 
 `--parts` runs some of them (the others' results in OUT/scale.json are kept). Prints a table
 and writes OUT/scale.json.
@@ -58,12 +64,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--kill-log", default="humanoid_push", help="the log whose task is killed")
     parser.add_argument("--kill-after", type=float, default=3.0, help="s into its estimate")
     parser.add_argument("--calibrate-s", type=float, default=4.0, help="of the calibration log")
-    parser.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS))
+    parser.add_argument("--hour-s", type=float, default=3600.0, help="the hour-long log's length")
+    parser.add_argument(
+        "--hour-init", help="--init of both estimates of the hour-long log (default: the default)"
+    )
+    parser.add_argument(
+        "--hour-work", type=Path, help="the hour-long log and its runs (default OUT/hour; 1 GB)"
+    )
+    parser.add_argument(
+        "--parts", nargs="+", choices=PARTS, default=[p for p in PARTS if p != "hour"]
+    )
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     report = args.out / "scale.json"
     results: dict[str, Any] = {}
-    if set(args.parts) != set(PARTS) and report.exists():
+    if set(args.parts) != {p for p in PARTS if p != "hour"} and report.exists():
         results = json.loads(report.read_text())
     results |= {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
@@ -89,13 +104,18 @@ def main(argv: list[str] | None = None) -> int:
         results["killed_worker"] = _killed(args.out / "killed", args.kill_log, args.kill_after)
     if "calibrate" in args.parts:
         results["calibrate"] = _calibrate(args.out / "calibrate", args.calibrate_s)
+    if "hour" in args.parts:
+        results["hour_log"] = _hour_log(
+            args.hour_work or args.out / "hour", args.hour_s, args.chunk_s * 4, args.hour_init
+        )
     report.write_text(json.dumps(results, indent=2) + "\n")
     _print(results)
     print(f"wrote {report}")
     return 0
 
 
-PARTS = ("fleet", "cluster", "long", "killed", "calibrate")
+PARTS = ("fleet", "cluster", "long", "killed", "calibrate", "hour")
+MEMORY_EVERY_S = 1.0
 
 
 def _fleet(where: list[str], out: Path, method: str, **popen: Any) -> tuple[float, list]:
@@ -175,20 +195,29 @@ def _long_log(out: Path, seconds: float, chunk_s: float) -> dict[str, Any]:
         runs[name] = {"wall_s": time.perf_counter() - start, "status": done.returncode}
         if done.returncode:
             runs[name]["error"] = done.stderr[-500:]
-    from estimator.io.state_topics import read_state_topics
-
-    one = read_state_topics(out / "one_process" / "estimate.mcap", prefix="/estimate")
-    two = read_state_topics(out / "chunks_2_workers" / "estimate.mcap", prefix="/estimate")
-    body = next(iter(one.odometry))
-    a, b = one.odometry[body].values, two.odometry[body].values
-    sigma = np.sqrt(np.stack([a[:, 13], a[:, 17], a[:, 21]], axis=1))  # σ x, y, z
-    z = np.abs(a[:, :3] - b[:, :3]) / sigma
     return {
         "log_s": seconds,
         "chunk_s": chunk_s,
         "runs": runs,
         "speedup_chunks_2_over_1": runs["chunks_1_worker"]["wall_s"]
         / runs["chunks_2_workers"]["wall_s"],
+        **_chunked_against_one(out / "one_process", out / "chunks_2_workers"),
+    }
+
+
+def _chunked_against_one(one_dir: Path, chunked_dir: Path) -> dict[str, Any]:
+    """The chunked estimate's first free body and joints against the one process's: the
+    position difference in units of the one process's reported σ, and at most."""
+    from estimator.io.state_topics import read_state_topics
+
+    one = read_state_topics(one_dir / "estimate.mcap", prefix="/estimate")
+    two = read_state_topics(chunked_dir / "estimate.mcap", prefix="/estimate")
+    body = next(iter(one.odometry))
+    a, b = one.odometry[body].values, two.odometry[body].values
+    sigma = np.sqrt(np.stack([a[:, 13], a[:, 17], a[:, 21]], axis=1))  # σ x, y, z
+    z = np.abs(a[:, :3] - b[:, :3]) / sigma
+    return {
+        "same_knots": bool(np.array_equal(one.odometry[body].t_ns, two.odometry[body].t_ns)),
         "body": body,
         "position_diff_over_sigma": {
             "max": float(np.max(z)),
@@ -199,6 +228,82 @@ def _long_log(out: Path, seconds: float, chunk_s: float) -> dict[str, Any]:
         "joint_diff_max_deg": float(
             np.degrees(np.max(np.abs(one.joints.values[:, 0::3] - two.joints.values[:, 0::3])))
         ),
+    }
+
+
+def _hour_log(out: Path, seconds: float, chunk_s: float, init: str | None) -> dict[str, Any]:
+    """humanoid_push simulated for `seconds`, estimated (physics) by one process and in
+    chunks on 2 workers, each with its peak memory; the chunked estimate against the one."""
+    out.mkdir(parents=True, exist_ok=True)
+    log, config = out / "humanoid_push.mcap", out / "humanoid_push.toml"
+    if not log.exists():
+        done = subprocess.run(
+            [
+                *(*PHYSFUSE, "simulate", "humanoid_push", "--out", str(log)),
+                *("--duration", str(seconds), "--config-out", str(config), "--quiet"),
+            ],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+        )
+        if done.returncode:
+            raise SystemExit(f"simulate: {done.stderr[-2000:]}")
+    command = [*PHYSFUSE, "estimate", str(log), "--config", str(config), "--quiet"]
+    command += ["--init", init] if init else []
+    runs: dict[str, Any] = {}
+    for name, extra in (
+        ("one_process", []),
+        ("chunks_2_workers", ["--chunk", str(chunk_s), "--workers", "2"]),
+    ):
+        record = out / name / "memory.json"
+        if not (record.exists() and (out / name / "summary.json").exists()):
+            run = _with_peak_memory([*command, "--out", str(out / name), *extra])
+            record.write_text(json.dumps(run, indent=2) + "\n")
+        runs[name] = json.loads(record.read_text())
+        summary = json.loads((out / name / "summary.json").read_text())
+        runs[name]["estimate_rmse"] = (summary["accuracy_vs_ground_truth"] or {}).get("estimate")
+        runs[name]["knots"] = summary["knots"]
+    return {
+        "log_s": seconds,
+        "log_mb": log.stat().st_size / 2**20,
+        "chunk_s": chunk_s,
+        "init": init or "default",
+        "runs": runs,
+        **_chunked_against_one(out / "one_process", out / "chunks_2_workers"),
+    }
+
+
+def _with_peak_memory(command: list[str]) -> dict[str, Any]:
+    """Run `command`; its wall time and peak memory: the most, over samples every
+    `MEMORY_EVERY_S`, of the summed proportional set size (shared pages split among their
+    sharers: Ray's object store counted once) of the process and all its descendants."""
+    import psutil
+
+    start = time.perf_counter()
+    proc = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    root = psutil.Process(proc.pid)
+    peak_pss, peak_rss, most = 0, 0, 0
+    while proc.poll() is None:
+        pss = rss = 0
+        tree = [root, *root.children(recursive=True)]
+        for p in tree:
+            try:
+                info = p.memory_full_info()
+            except (psutil.NoSuchProcess, psutil.AccessDenied):
+                continue
+            pss, rss = pss + info.pss, rss + info.rss
+        peak_pss, peak_rss, most = max(peak_pss, pss), max(peak_rss, rss), max(most, len(tree))
+        time.sleep(MEMORY_EVERY_S)
+    stdout, stderr = proc.communicate()
+    wall = time.perf_counter() - start
+    if proc.returncode:
+        raise SystemExit(f"{' '.join(command)} failed: {stderr.decode()[-2000:]}")
+    return {
+        "wall_s": wall,
+        "peak_pss_mb": peak_pss / 2**20,
+        "peak_rss_sum_mb": peak_rss / 2**20,
+        "processes_at_most": most,
+        "said": stdout.decode().strip().splitlines()[:1],
     }
 
 
@@ -300,6 +405,8 @@ def _print(r: dict[str, Any]) -> None:
     print(f"machine: {r['machine']}, Python {r['python']}; method {r['method']}")
     if "workers_1" in r:
         _print_fleet(r)
+    if "hour_log" in r:
+        _print_hour(r["hour_log"])
     if "calibrate" in r:
         c = r["calibrate"]
         for name, run in c["runs"].items():
@@ -335,6 +442,19 @@ def _print_fleet(r: dict[str, Any]) -> None:
         f"{k['retried_after_s']:.1f} s later, done {k['finished_after_s']:.0f} s later; row "
         f"{k['row_status']}; against one process: "
         f"joints max |Δ| {k['max_abs_diff_joints']:.3g}, poses {k['max_abs_diff_poses']:.3g}"
+    )
+
+
+def _print_hour(g: dict[str, Any]) -> None:
+    print(f"{'hour-long log':34s} {'wall s':>8s} {'peak MB':>8s}  (PSS over the process tree)")
+    for name, run in g["runs"].items():
+        label = f"{g['log_s']:.0f} s log, {name}"
+        print(f"{label:34s} {run['wall_s']:8.1f} {run['peak_pss_mb']:8.0f}")
+    d = g["position_diff_over_sigma"]
+    print(
+        f"  chunked vs one process, {g['body']} position: max {d['max']:.2f} σ, p99 "
+        f"{d['p99']:.2f} σ, {d['within_1_sigma']:.1%} within 1 σ; max "
+        f"{g['position_diff_max_mm']:.4f} mm, joints {g['joint_diff_max_deg']:.2g}°"
     )
 
 

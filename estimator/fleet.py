@@ -19,7 +19,7 @@ import os
 import socket
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -204,12 +204,13 @@ def run_fleet(
     return rows
 
 
-def as_task(function: Callable[..., Any]) -> Any:
+def as_task(function: Callable[..., Any], env_vars: Mapping[str, str] | None = None) -> Any:
     """`function` as a Ray task of one CPU, MuJoCo on one thread there (PHYSFUSE_THREADS, read
-    when the estimator is imported), run again when its worker dies."""
+    when the estimator is imported), run again when its worker dies; env_vars: more of its
+    workers' environment."""
     import ray
 
-    env = {"env_vars": {"PHYSFUSE_THREADS": "1"}}
+    env = {"env_vars": {"PHYSFUSE_THREADS": "1", **(env_vars or {})}}
     return ray.remote(num_cpus=1, max_retries=RETRIES, runtime_env=env)(function)
 
 

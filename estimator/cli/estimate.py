@@ -14,10 +14,11 @@ display, --serve on a busy port) is a warning: the files are written.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import uuid
-from collections.abc import Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ from tqdm import tqdm
 
 from estimator import chunks, fleet
 from estimator.batch import estimate
-from estimator.config import load_config
+from estimator.config import Config, load_config
 from estimator.errors import ConfigError, LogError
 from estimator.estimate import Estimate
 from estimator.io.logs import Measurement, read_log
@@ -157,61 +158,23 @@ def run(args: argparse.Namespace) -> int:
     run_id = str(uuid.uuid4())  # in summary.json, estimate.mcap and estimate.rrd: one run's set
     # --out checked and locked before the log is read; written whole when the run completes
     with OutputFolder(out, OUTPUTS) as tmp:
-        log = read_log(args.log, config)
-        skipped = skipped_samples(log.measurements)
-        # the log's, and commands that disagree with the logged efforts through the actuators
-        input_warnings = list(log.warnings) + command_warnings(
-            commands_against_efforts(config, config.load_model(), log.measurements)
-        )
-        for warning in input_warnings:
-            print(f"physfuse estimate: warning: {warning}", file=sys.stderr)
-        for line in skipped_lines(skipped):
-            print(f"physfuse estimate: {line}", file=sys.stderr)
-        bar = tqdm(total=0, unit="window", disable=args.quiet or not sys.stderr.isatty())
-
-        def progress(done: int, total: int) -> None:
-            bar.total = total
-            bar.update(done - bar.n)
-
-        if args.chunk is None:
-            est, summary = estimate(config, log.measurements, settings, progress)
-        else:
-            est, summary = chunks.estimate_chunked(
-                args.config,
-                log.measurements,
-                settings,
-                args.chunk,
-                args.chunk_overlap,
-                args.workers,
-                args.ray_address,
-                progress,
+        if args.chunk is not None:
+            report, summary, input_warnings, shown = _estimate_in_chunks(
+                args, config, settings, tmp, run_id
             )
-        summary = replace(summary, warnings=input_warnings + summary.warnings)
-        bar.close()
-        model = config.load_model()
-        imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
-        with EstimateWriter(
-            tmp / "estimate.mcap", model, est.model_name, est.h, run_id
-        ) as out_mcap:
-            out_mcap.write(est, range(est.T), imu_sites)
-        accuracy = _accuracy(args.log, model, log.measurements, est)
-        lost = [asdict(x) for x in log.lost]
-        report = _report(summary, settings, accuracy, out, run_id, skipped, lost)
-        from estimator.io.rerun import (
-            ViewerError,
-            serve_until_interrupted,
-            show_recording,
-            write_recording,
-        )
+        else:
+            report, summary, input_warnings, shown = _estimate_whole(
+                args, config, settings, tmp, run_id
+            )
+    model = config.load_model()
+    from estimator.io.rerun import ViewerError, serve_until_interrupted, show_recording
 
-        write_recording(est, model, log, path=tmp / "estimate.rrd", recording_id=run_id)
-        (tmp / "summary.json").write_text(json.dumps(report, indent=2) + "\n")
     _print(report, summary, input_warnings)
     print(f"outputs: {', '.join(str(out / n) for n in OUTPUTS)}")
     print(f"open the recording with: rerun {out / 'estimate.rrd'}")
     if args.spawn or args.serve:
         try:  # the outputs are complete: a viewer that cannot open is only a warning
-            show_recording(est, model, out / "estimate.rrd", spawn=args.spawn, serve=args.serve)
+            show_recording(shown, model, out / "estimate.rrd", spawn=args.spawn, serve=args.serve)
         except ViewerError as err:
             rrd = out / "estimate.rrd"
             print(f"physfuse estimate: warning: {err} (written: rerun {rrd})", file=sys.stderr)
@@ -219,6 +182,103 @@ def run(args: argparse.Namespace) -> int:
     if args.serve:
         serve_until_interrupted()
     return 0
+
+
+def _estimate_whole(
+    args: argparse.Namespace, config: Config, settings: Settings, tmp: Path, run_id: str
+) -> tuple[dict[str, Any], Summary, list[str], Estimate]:
+    """The log read whole, estimated, its three outputs written into `tmp`."""
+    log = read_log(args.log, config)
+    skipped = skipped_samples(log.measurements)
+    # the log's, and commands that disagree with the logged efforts through the actuators
+    input_warnings = list(log.warnings) + command_warnings(
+        commands_against_efforts(config, config.load_model(), log.measurements)
+    )
+    for warning in input_warnings:
+        print(f"physfuse estimate: warning: {warning}", file=sys.stderr)
+    for line in skipped_lines(skipped):
+        print(f"physfuse estimate: {line}", file=sys.stderr)
+    with _progress_bar(args.quiet) as progress:
+        est, summary = estimate(config, log.measurements, settings, progress)
+    summary = replace(summary, warnings=input_warnings + summary.warnings)
+    model = config.load_model()
+    imu_sites = _imu_sites(config)
+    with EstimateWriter(tmp / "estimate.mcap", model, est.model_name, est.h, run_id) as out_mcap:
+        out_mcap.write(est, range(est.T), imu_sites)
+    accuracy = _accuracy(args.log, model, log.measurements, est)
+    lost = [asdict(x) for x in log.lost]
+    report = _report(summary, settings, accuracy, args.out, run_id, skipped, lost)
+    from estimator.io.rerun import write_recording
+
+    write_recording(est, model, log, path=tmp / "estimate.rrd", recording_id=run_id)
+    (tmp / "summary.json").write_text(json.dumps(report, indent=2) + "\n")
+    return report, summary, input_warnings, est
+
+
+def _estimate_in_chunks(
+    args: argparse.Namespace, config: Config, settings: Settings, tmp: Path, run_id: str
+) -> tuple[dict[str, Any], Summary, list[str], Estimate]:
+    """The log in chunks on Ray (`estimator.chunks`), each part written to the outputs in
+    `tmp` as it comes: memory holds a few chunks, not the log."""
+    from estimator.io.rerun import RecordingWriter
+
+    chunks.check_log(args.log)
+    model = config.load_model()
+    imu_sites = _imu_sites(config)
+    h = settings.h or float(model.opt.timestep)
+    shown: list[Estimate] = []
+    with (
+        EstimateWriter(tmp / "estimate.mcap", model, config.model, h, run_id) as out_mcap,
+        RecordingWriter(tmp / "estimate.rrd", model, 0, run_id) as rrd,
+        _progress_bar(args.quiet) as progress,
+    ):
+
+        def write(part: chunks.Part) -> None:
+            if not shown:  # the recording's time origin: the first knot
+                shown.append(part.estimate)
+                rrd.t0_ns = int(part.estimate.t_ns[0])
+            out_mcap.write(part.estimate, range(part.estimate.T), imu_sites)
+            rrd.write(part.estimate, part.log)
+
+        run = chunks.estimate_chunked(
+            args.config,
+            args.log,
+            settings,
+            args.chunk,
+            write,
+            args.chunk_overlap,
+            args.workers,
+            args.ray_address,
+            progress,
+        )
+    for warning in run.warnings:
+        print(f"physfuse estimate: warning: {warning}", file=sys.stderr)
+    for line in skipped_lines(run.skipped):
+        print(f"physfuse estimate: {line}", file=sys.stderr)
+    summary = replace(run.summary, warnings=run.warnings + run.summary.warnings)
+    lost = [asdict(x) for x in run.lost]
+    report = _report(summary, settings, run.accuracy, args.out, run_id, run.skipped, lost)
+    (tmp / "summary.json").write_text(json.dumps(report, indent=2) + "\n")
+    return report, summary, run.warnings, shown[0]
+
+
+@contextlib.contextmanager
+def _progress_bar(quiet: bool) -> Iterator[Callable[[int, int], None]]:
+    """progress(done, total) on a bar on stderr (none when quiet or not a terminal)."""
+    bar = tqdm(total=0, unit="window", disable=quiet or not sys.stderr.isatty())
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        yield progress
+    finally:
+        bar.close()
+
+
+def _imu_sites(config: Config) -> dict[str, str]:
+    return {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
 
 
 def _names_many(log: Path) -> bool:

@@ -204,14 +204,29 @@ class Ros2Writer:
         qos: str = RELIABLE_QOS,
     ) -> None:
         """Encode one message (CDR) and write it, registering its channel on first use."""
+        _, encode = cdr_encoder(msg_type)
+        self.write_encoded(
+            topic, msg_type, encode(fields), log_time_ns, publish_time_ns=publish_time_ns, qos=qos
+        )
+
+    def write_encoded(
+        self,
+        topic: str,
+        msg_type: str,
+        data: bytes,
+        log_time_ns: int,
+        *,
+        publish_time_ns: int | None = None,
+        qos: str = RELIABLE_QOS,
+    ) -> None:
+        """Write one message already CDR-encoded, registering its channel on first use."""
         channel_id = self.channel(topic, msg_type, qos)
-        _, encode = self._schema(msg_type)
         self._writer.add_message(
             channel_id=channel_id,
             log_time=int(log_time_ns),
             publish_time=int(log_time_ns if publish_time_ns is None else publish_time_ns),
             sequence=0,
-            data=encode(fields),
+            data=data,
         )
         self.message_count += 1
 
@@ -448,6 +463,23 @@ class Message(NamedTuple):
     msg_type: str
     log_time_ns: int
     fields: dict[str, Any]
+    qos: str = RELIABLE_QOS
+
+    def encoded(self) -> EncodedMessage:
+        """The message with its fields CDR-encoded: a tenth of the memory (an hour of a
+        simulated robot's messages is millions of them)."""
+        _, encode = cdr_encoder(self.msg_type)
+        data = encode(self.fields)
+        return EncodedMessage(self.topic, self.msg_type, self.log_time_ns, data, self.qos)
+
+
+class EncodedMessage(NamedTuple):
+    """A `Message` whose fields are CDR bytes (`Ros2Writer.write_encoded`)."""
+
+    topic: str
+    msg_type: str
+    log_time_ns: int
+    data: bytes
     qos: str = RELIABLE_QOS
 
 

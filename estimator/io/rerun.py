@@ -467,10 +467,27 @@ def _log_all(
     rec: rr.RecordingStream, estimate: Estimate, model: mujoco.MjModel, log: Log | None
 ) -> None:
     t0_ns = _start_ns(estimate, log)
+    _log_static(rec, model, t0_ns)
+    _log_knots(rec, estimate, model, log, t0_ns)
+
+
+def _log_static(rec: rr.RecordingStream, model: mujoco.MjModel, t0_ns: int) -> None:
+    """What a recording logs once: its start time, the world's axes, the geoms."""
     rec.send_recording_start_time_nanos(t0_ns)
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    _log_geoms(rec, model)
+
+
+def _log_knots(
+    rec: rr.RecordingStream,
+    estimate: Estimate,
+    model: mujoco.MjModel,
+    log: Log | None,
+    t0_ns: int,
+) -> None:
+    """The estimate's knots (and the log's mocap over them) on the timeline from t0_ns."""
     knots = estimate.t_ns - np.int64(t0_ns)  # (T,) int64 ns since the start
-    _log_model(rec, model, estimate, knots)
+    _log_body_poses(rec, model, estimate.qpos, knots)
     _log_contacts(rec, model, estimate, knots)
     if log is not None:
         _log_measurements(rec, log, t0_ns)
@@ -478,6 +495,44 @@ def _log_all(
     _log_residuals(rec, estimate, dofs, knots)
     _log_imu_bias(rec, estimate, knots)
     _log_series_group(rec, "plots/uncertainty", dofs, estimate.qpos_std, knots)
+
+
+class RecordingWriter:
+    """An estimate written to a `.rrd` file part by part, in time order (a long log in
+    chunks: `estimator.chunks`), as `write_recording` writes it whole. The file is complete
+    once `close` has run.
+
+        with RecordingWriter(path, model, t0_ns, run_id) as rrd:
+            rrd.write(part, log_part)
+    """
+
+    def __init__(
+        self, path: str | Path, model: mujoco.MjModel, t0_ns: int, recording_id: str
+    ) -> None:
+        self.path, self.model, self.t0_ns = Path(path), model, int(t0_ns)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.rec = rr.RecordingStream("physfuse", recording_id=recording_id)
+        self.started = False
+
+    def write(self, estimate: Estimate, log: Log | None = None) -> None:
+        if not self.started:  # the layout from the first part (its residuals and streams)
+            blueprint = build_blueprint(estimate, self.model)
+            self.rec.set_sinks(rr.FileSink(str(self.path)), default_blueprint=blueprint)
+            _log_static(self.rec, self.model, self.t0_ns)
+            self.started = True
+        _log_knots(self.rec, estimate, self.model, log, self.t0_ns)
+        self.rec.flush()  # to the file: memory holds one part, not the recording
+
+    def close(self) -> None:
+        if self.started:
+            self.rec.flush()
+            self.rec.disconnect()  # closes the file and writes its footer
+
+    def __enter__(self) -> RecordingWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def _log_diagnosis(
@@ -537,14 +592,6 @@ def _log_diagnosis(
             rr.Arrows3D.from_fields(radii=0.015, colors=[(192, 57, 43)]),
             static=True,
         )
-
-
-def _log_model(
-    rec: rr.RecordingStream, model: mujoco.MjModel, estimate: Estimate, knots: np.ndarray
-) -> None:
-    """Geoms once (static, in their body's frame), body poses per knot (mj_kinematics)."""
-    _log_geoms(rec, model)
-    _log_body_poses(rec, model, estimate.qpos, knots)
 
 
 def _log_geoms(rec: rr.RecordingStream, model: mujoco.MjModel) -> None:

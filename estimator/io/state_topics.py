@@ -84,12 +84,15 @@ class StateTopics:
         return t_ns, qpos
 
 
-def read_state_topics(path: str | Path, prefix: str = PREFIX) -> StateTopics:
-    """The `{prefix}/...` state topics of a log (file or rosbag2 folder).
+def read_state_topics(
+    path: str | Path, prefix: str = PREFIX, log_time: tuple[int, int] | None = None
+) -> StateTopics:
+    """The `{prefix}/...` state topics of a log (file or rosbag2 folder); log_time: (start,
+    end) ns, only the messages received in [start, end).
 
     Raises LogError when the path is not a log, or has no topic under `prefix`.
     """
-    source = open_log(path)
+    source = open_log(path, log_time=log_time)
     decoders: dict[tuple[Any, ...], Callable[[bytes], Any]] = {}
     odometry: dict[str, dict[int, list[float]]] = {}
     joints: dict[int, dict[str, tuple[float, float, float]]] = {}
@@ -185,12 +188,15 @@ def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
         return {}
 
 
-def read_ground_truth(path: str | Path, model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
-    """(t_ns (N,), qpos (N, nq)) from `/ground_truth/odometry/<body>` and `.../joint_states`.
+def read_ground_truth(
+    path: str | Path, model: mujoco.MjModel, log_time: tuple[int, int] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(t_ns (N,), qpos (N, nq)) from `/ground_truth/odometry/<body>` and `.../joint_states`
+    (log_time: of the messages received in [start, end) ns only).
 
     Raises LogError when the log has no ground truth (a real robot's log).
     """
-    return read_state_topics(path, PREFIX).qpos(model)
+    return read_state_topics(path, PREFIX, log_time).qpos(model)
 
 
 def at_times(t_truth: np.ndarray, values: np.ndarray, t_ns: np.ndarray) -> np.ndarray:

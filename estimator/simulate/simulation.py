@@ -26,10 +26,11 @@
 from __future__ import annotations
 
 import copy
+import heapq
 import json
 import math
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import IO, Any
@@ -40,6 +41,7 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from estimator.io.mcap_writer import (
+    EncodedMessage,
     Message,
     Ros2Writer,
     StateLayout,
@@ -162,17 +164,16 @@ def simulate(
         controller = scenario.controller(load_model(scenario.model), rng, duration)
         scenario.pushes(rng, duration)
         trajectory = _run(scenario, dyn.model, controller, pushes, duration, progress)
-    messages = _ground_truth(scenario, dyn, trajectory, progress)
+    sensed: list[EncodedMessage] = []  # encoded: an hour of a robot's messages fits
     truths: dict[str, dict[str, Any]] = {}
     for sensor in scenario.sensors:
         output = sensor.sample(trajectory, rng)
-        messages.extend(output.messages)
+        sensed.extend(m.encoded() for m in output.messages)
         truths[sensor.name] = output.truth
         if isinstance(imu := _wrapped(sensor), Imu):
-            messages.extend(_imu_bias_messages(imu, output.truth, trajectory.t0_ns))
-
-    order = sorted(range(len(messages)), key=lambda i: messages[i].log_time_ns)
-    topics = {m.topic: m.msg_type for m in messages}
+            bias = _imu_bias_messages(imu, output.truth, trajectory.t0_ns)
+            sensed.extend(m.encoded() for m in bias)
+    sensed.sort(key=lambda m: m.log_time_ns)  # stable: a tie keeps the order made
     metadata = _metadata(scenario, seed, duration, trajectory, record, true_softness, pushes)
     if scenario.condition is not None:
         metadata["physfuse.condition"] = _condition_metadata(scenario.condition, truths, pushes)
@@ -180,12 +181,16 @@ def simulate(
         writer = Ros2Writer(out, compression=compression)
     except OSError as err:
         raise SimulationError(f"cannot write {out}: {err.strerror or err}") from err
+    topics: dict[str, str] = {}
     with writer:
         for name, data in metadata.items():
             writer.add_metadata(name, data)
-        for i in tqdm(order, desc="write", unit="msg", disable=not progress, leave=False):
-            m = messages[i]
-            writer.write(m.topic, m.msg_type, m.fields, m.log_time_ns, qos=m.qos)
+        # the ground truth, made step by step in time order, merged with the sensors' messages
+        # (a tie: the ground truth first); none of it is held
+        truth = _ground_truth(scenario, dyn, trajectory, progress)
+        for m in heapq.merge(truth, sensed, key=lambda m: m.log_time_ns):
+            topics[m.topic] = m.msg_type
+            writer.write_encoded(m.topic, m.msg_type, m.data, m.log_time_ns, qos=m.qos)
     return SimulationResult(
         scenario=scenario,
         seed=seed,
@@ -196,7 +201,7 @@ def simulate(
         pushes=pushes,
         sensors=truths,
         topics=dict(sorted(topics.items())),
-        message_count=len(messages),
+        message_count=writer.message_count,
     )
 
 
@@ -314,30 +319,28 @@ def _has_site_sensor(model: mujoco.MjModel, site: str, kind: int) -> bool:
 
 def _ground_truth(
     scenario: Scenario, dyn: Dynamics, traj: Trajectory, progress: bool
-) -> list[Message]:
-    """The `/ground_truth` messages: state, inverse-dynamics effort and contacts per step."""
+) -> Iterator[EncodedMessage]:
+    """The `/ground_truth` messages, step by step: state, inverse-dynamics effort and
+    contacts."""
     m = dyn.model
     layout = StateLayout.of(m)
     data = mujoco.MjData(m)
-    messages: list[Message] = []
     steps = range(0, traj.steps, scenario.ground_truth_decimation)
     for k in tqdm(steps, desc="ground truth", unit="step", disable=not progress, leave=False):
         qacc = (traj.qvel[k + 1] - traj.qvel[k]) / traj.h
         inverse = dyn.inverse(traj.qpos[k], traj.qvel[k], qacc)
         state_data(m, traj.qpos[k], traj.qvel[k], data)
         t_ns = traj.t0_ns + int(traj.step_ns(k))
-        messages.extend(
-            state_messages(
-                GROUND_TRUTH,
-                t_ns,
-                m,
-                data,
-                qfrc=inverse.qfrc_inverse,
-                constraints=inverse.constraints,
-                layout=layout,
-            )
+        state = state_messages(
+            GROUND_TRUTH,
+            t_ns,
+            m,
+            data,
+            qfrc=inverse.qfrc_inverse,
+            constraints=inverse.constraints,
+            layout=layout,
         )
-    return messages
+        yield from (each.encoded() for each in state)
 
 
 def _imu_bias_messages(imu: Imu, truth: dict[str, Any], t0_ns: int) -> list[Message]:

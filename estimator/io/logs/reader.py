@@ -58,6 +58,7 @@ def read_log(
     *,
     decode_all: bool = False,
     require: bool = True,
+    log_time: tuple[int, int] | None = None,
 ) -> Log:
     """Read a log file, rosbag2 folder, FIFO, or standard input (`-`).
 
@@ -65,9 +66,11 @@ def read_log(
     decode_all: decode every topic (header stamps and bad counts for all of them), not only
         the config's; without a config every topic is decoded anyway.
     require: raise `MissingTopicError` for a required stream without usable samples.
+    log_time: (start, end) ns: only the messages received in [start, end) (a slice of a long
+        log file or folder, read without the rest: `source.open_log`).
     """
     only = None if config is None or decode_all else set(config.topics)
-    source = open_log(path, topics=only)
+    source = open_log(path, topics=only, log_time=log_time)
     extractor = SampleExtractor(config, decode_all=decode_all or config is None)
     samples = list(extract(source, extractor))
     return finish(source, extractor, samples, config, require=require)

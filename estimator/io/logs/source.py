@@ -135,10 +135,12 @@ class LogSource:
     truncated: the log ends early (a cut file or stream, damage that reaches the end of the
         data, a missing split file); a damaged chunk in the middle is lost, not truncation.
     start_ns: the first log time met, which lost time ranges are given relative to.
+    window: (start, end) ns: only the messages received in [start, end) (`open_log`).
     """
 
     def __init__(self, name: str, iterate: Callable[[LogSource], Iterator[RawMessage]]):
         self.name = name
+        self.window: tuple[int, int] | None = None
         self.topics: dict[str, str] = {}
         self.warnings: list[str] = []
         self.lost: list[LostData] = []
@@ -148,7 +150,9 @@ class LogSource:
 
     def __iter__(self) -> Iterator[RawMessage]:
         try:
-            yield from self._iterate(self)
+            for raw in self._iterate(self):
+                if self.window is None or self.window[0] <= raw.log_time_ns < self.window[1]:
+                    yield raw
         except LogError:
             raise
         except OSError as err:
@@ -170,12 +174,25 @@ class LogSource:
             self.start_ns = t_ns
 
 
-def open_log(path: str | Path, topics: Collection[str] | None = None) -> LogSource:
+def open_log(
+    path: str | Path,
+    topics: Collection[str] | None = None,
+    log_time: tuple[int, int] | None = None,
+) -> LogSource:
     """A source over an MCAP file, a rosbag2 folder (metadata.yaml + split .mcap files), a
     FIFO, or standard input (`-`); the last two are read as byte streams.
 
-    topics: read only these (None: all). Raises `LogError` if the path is not a log.
+    topics: read only these (None: all). log_time: (start, end) ns, only the messages the
+    recorder received in [start, end) (a file's chunks outside are not read: a slice of a long
+    log costs its own size; a FIFO or standard input cannot be sliced). Raises `LogError` if
+    the path is not a log.
     """
+    if log_time is not None:
+        if str(path) == "-" or Path(path).is_fifo():
+            raise LogError(f"{path}: a stream is read once; a time slice needs a file or folder")
+        source = open_log(path, topics)
+        source.window = log_time
+        return source
     if str(path) == "-":
         stdin = getattr(sys.stdin, "buffer", None)
         if stdin is None:
@@ -198,6 +215,29 @@ def open_log(path: str | Path, topics: Collection[str] | None = None) -> LogSour
     if (problem := _not_mcap(path)) is not None:
         raise LogError(problem)
     return LogSource(str(path), lambda src: _iter_file(src, path, topics))
+
+
+def log_time_span(path: str | Path) -> tuple[int, int]:
+    """(first, last) receive time of a log file's or rosbag2 folder's messages: from each
+    file's chunk index, or, in a file without one (cut, damaged), by reading it through."""
+    path = Path(path)
+    first, last = [], []
+    for file in _rosbag2_files(path) if path.is_dir() else [path]:
+        if not file.is_file() or _not_mcap(file) is not None:
+            continue
+        with file.open("rb") as f:
+            index, _ = _read_index(f, os.fstat(f.fileno()).st_size)
+        if index is not None:
+            first.append(min(c.message_start_time for c in index.chunks))
+            last.append(max(c.message_end_time for c in index.chunks))
+            continue
+        times = [raw.log_time_ns for raw in open_log(file)]
+        if times:
+            first.append(min(times))
+            last.append(max(times))
+    if not first:
+        raise LogError(f"{path}: no messages")
+    return min(first), max(last)
 
 
 def open_stream(
@@ -386,6 +426,10 @@ def _iter_indexed(
     need_crc = any(_chunk_crc(f, entry) for entry in index.chunks)
     unchecked = False  # a chunk without a CRC of its own was read
     for entry in index.chunks:
+        if src.window is not None and not (
+            entry.message_start_time < src.window[1] and entry.message_end_time >= src.window[0]
+        ):
+            continue  # outside the slice asked for: not read
         if (
             wanted is not None
             and entry.message_index_offsets
