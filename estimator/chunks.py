@@ -30,7 +30,7 @@ import numpy as np
 
 from estimator.batch import estimate
 from estimator.config import Config, load_config
-from estimator.errors import ConfigError, LogError, PhysfuseError
+from estimator.errors import ConfigError, LogError, MissingTopicError, PhysfuseError
 from estimator.estimate import Estimate
 from estimator.fleet import as_task, ray_session
 from estimator.io.logs import Log, LostData, Measurement, read_log
@@ -112,8 +112,12 @@ def estimate_chunked(
     h = settings.h or float(model.opt.timestep)
     head_s = max(HEAD_S, settings.fit_softness_s + 2 * WINDOW_MARGIN_NS / 1e9)
     span = log_time_span(log_path)
-    head = read_log(log_path, config, log_time=(span[0], span[0] + round(head_s * 1e9)))
-    tail = read_log(log_path, config, log_time=(span[1] - round(HEAD_S * 1e9), span[1] + 1))
+    # (a required stream may start later or end sooner: `missing_required` at the end)
+    head_end = span[0] + round(head_s * 1e9)
+    head = read_log(log_path, config, log_time=(span[0], head_end), require=False)
+    tail = read_log(
+        log_path, config, log_time=(span[1] - round(HEAD_S * 1e9), span[1] + 1), require=False
+    )
     t_ns = knot_grid(_joined(head.measurements, tail.measurements), h)
     settings, fitted = softness_fitted(config, head.measurements, settings, t_ns)
     clock = _clock_offsets(head.measurements)
@@ -151,6 +155,13 @@ def estimate_chunked(
             parts_done.append(part.summary)
             if progress:
                 progress(i + 1, len(cuts))
+    missing = [
+        f"required stream {name!r}: no usable sample of topic {stream.topic!r} in the log"
+        for name, stream in config.streams.items()
+        if stream.required and not run.skipped.get(name, {}).get("kept")
+    ]
+    if missing:
+        raise MissingTopicError(f"{log_path}: " + "; ".join(missing))
     run.summary = _summary(run, parts_done, fitted, cuts, margin, time.perf_counter() - start)
     if run.squared_errors is not None:  # RMSE over all parts' knots
         run.accuracy = {

@@ -191,6 +191,25 @@ def test_a_log_in_chunks_on_two_workers_is_the_one_process_estimate_within_its_s
     assert np.all(np.abs(a.values[:, :3] - b.values[:, :3]) < sigma)
     summary = json.loads((chunked / "summary.json").read_text())
     assert summary["knots"] == len(a.t_ns) and summary["windows"] == 2
+    # each chunk read its own slice of the file: every sample counted once, as one read does
+    whole = json.loads((one / "summary.json").read_text())
+    assert summary["skipped_samples"] == whole["skipped_samples"]
+    raw, chunked_raw = (s["accuracy_vs_ground_truth"]["raw"] for s in (whole, summary))
+    assert chunked_raw.keys() == raw.keys()
+    for metric, value in raw.items():  # the same measurements on the same knots
+        assert chunked_raw[metric] == pytest.approx(value, rel=1e-9), metric
+
+
+def test_chunks_need_a_log_they_can_slice(tmp_path):
+    """--chunk on a FIFO: one line saying why, nothing written."""
+    fifo = tmp_path / "live.mcap"
+    os.mkfifo(fifo)
+    out = tmp_path / "out"
+    config = "configs/single_joint.toml"
+    done = _run(["estimate", str(fifo), "--config", config, "--chunk", "1", "--out", str(out)])
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("\n") == 1 and "record it to a file" in done.stderr, done.stderr
+    assert not (tmp_path / "out").exists()
 
 
 def test_chunks_refuse_what_they_cannot_cut_before_the_log_is_read(tmp_path):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from estimator.config import load_config
 from estimator.errors import LogError, MissingTopicError
 from estimator.io.logs import read_log, resample, time_grid
 from estimator.io.logs import ros2_types as t
+from estimator.io.logs.source import log_time_span
 
 DURATION = 0.5
 COUNTS = rl.sample_counts(DURATION)
@@ -456,3 +458,34 @@ def test_reading_with_a_config_decodes_only_its_topics(sample, tmp_path):
     log = read_log(path, load_config(rl.write_robot(tmp_path, text)))
     assert list(log.topics) == ["/mocap/torso"]
     assert Path(log.source) == path
+
+
+@pytest.mark.parametrize("cut", [False, True])
+def test_a_time_slice_reads_the_messages_received_within_it(tmp_path, cut):
+    """log_time=(a, b): exactly the samples received in [a, b), the same arrays as the whole
+    read's there — from the chunk index where the file has one (small chunks: most are not
+    read), by reading it through where it has none (cut: no summary)."""
+    config = load_config(rl.write_robot(tmp_path))
+    data = rl.mcap_bytes(rl.sample_recording(DURATION), chunk_size=2000)
+    path = tmp_path / "log.mcap"
+    path.write_bytes(data[: len(data) - 100] if cut else data)
+    whole = read_log(path, config, require=False)
+    first, last = log_time_span(path)
+    received = np.concatenate([m.log_time_ns for m in whole.measurements.values()])
+    assert first <= received.min() and received.max() <= last
+    a, b = first + (last - first) // 3, first + (last - first) // 2
+    part = read_log(path, config, log_time=(a, b), require=False)
+    for name, m in whole.measurements.items():
+        inside = (m.log_time_ns >= a) & (m.log_time_ns < b)
+        got = part.measurements[name]
+        assert inside.any() and len(got) == inside.sum(), name
+        np.testing.assert_array_equal(got.t_ns, m.t_ns[inside])
+        np.testing.assert_array_equal(got.values, m.values[inside])
+
+
+def test_a_stream_cannot_be_sliced(tmp_path):
+    """A FIFO is read once: a time slice of it is one clear error."""
+    fifo = tmp_path / "live.mcap"
+    os.mkfifo(fifo)
+    with pytest.raises(LogError, match="a time slice needs a file or folder"):
+        read_log(fifo, log_time=(0, 1))

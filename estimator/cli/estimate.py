@@ -154,6 +154,7 @@ def run(args: argparse.Namespace) -> int:
     check_for_estimate(config, settings)  # the model and settings, before the log is read
     if args.chunk is not None:
         chunks.check(settings, args.chunk, args.chunk_overlap)
+        chunks.check_log(args.log)
     out: Path = args.out
     run_id = str(uuid.uuid4())  # in summary.json, estimate.mcap and estimate.rrd: one run's set
     # --out checked and locked before the log is read; written whole when the run completes
@@ -222,7 +223,6 @@ def _estimate_in_chunks(
     `tmp` as it comes: memory holds a few chunks, not the log."""
     from estimator.io.rerun import RecordingWriter
 
-    chunks.check_log(args.log)
     model = config.load_model()
     imu_sites = _imu_sites(config)
     h = settings.h or float(model.opt.timestep)
