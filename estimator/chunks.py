@@ -112,7 +112,8 @@ def estimate_chunked(
     h = settings.h or float(model.opt.timestep)
     head_s = max(HEAD_S, settings.fit_softness_s + 2 * WINDOW_MARGIN_NS / 1e9)
     span = log_time_span(log_path)
-    # (a required stream may start later or end sooner: `missing_required` at the end)
+    # (require=False: a required stream may start later or end sooner; it is checked over
+    # the whole log once every part is in)
     head_end = span[0] + round(head_s * 1e9)
     head = read_log(log_path, config, log_time=(span[0], head_end), require=False)
     tail = read_log(
@@ -120,7 +121,7 @@ def estimate_chunked(
     )
     t_ns = knot_grid(_joined(head.measurements, tail.measurements), h)
     settings, fitted = softness_fitted(config, head.measurements, settings, t_ns)
-    clock = _clock_offsets(head.measurements)
+    clock = _clock_offsets(head.measurements, tail.measurements)  # a drift over the log too
     unanchored_base = free_base(model)[0] >= 0 and not _has_mocap(head, tail)
     knots, n, margin = len(t_ns), max(8, round(chunk_s / h)), round(overlap_s / h)
     cuts = [(a, min(a + n, knots)) for a in range(0, knots, n)]
@@ -131,7 +132,7 @@ def estimate_chunked(
     previous: Estimate | None = None
     task = as_task(estimate_chunk, WORKER_ENV)
     with ray_session(workers, address):
-        in_flight = max(1, int(ray.available_resources().get("CPU", 1))) + 1
+        in_flight = max(1, int(ray.cluster_resources().get("CPU", 1))) + 1
         refs: dict[int, Any] = {}
         for i, (a, b) in enumerate(cuts):
             while len(refs) < in_flight and len(refs) + i < len(cuts):
@@ -150,7 +151,7 @@ def estimate_chunked(
                 est = placed_after(model, est, 0, previous, previous.T - 1)
             previous = est  # its last knot is the next chunk's first
             part.estimate = _knots(est, slice(0, b - a))
-            _tally(run, part, t_ns[0])
+            _tally(run, part)
             on_part(part)
             parts_done.append(part.summary)
             if progress:
@@ -171,7 +172,21 @@ def estimate_chunked(
     return run
 
 
-def _submit(task, config_path, log_path, settings, t_ns, cut, margin, share, clock, knots):
+def _submit(
+    task: Any,
+    config_path: Path,
+    log_path: Path,
+    settings: Settings,
+    t_ns: np.ndarray,
+    cut: tuple[int, int],
+    margin: int,
+    share: tuple[int, int],
+    clock: tuple[int, int],
+    knots: int,
+) -> Any:
+    """The Ray task of chunk `cut` (its own knots a … b − 1) seen `margin` knots past each
+    end; `share`: the receive times it accounts for; `clock`: the streams' (min, max) stamp −
+    receipt time."""
     a, b = cut
     lo, hi = max(0, a - margin), min(knots, b + margin)
     # receive times to read: the chunk's knots, a window's margin of samples and the streams'
@@ -303,7 +318,7 @@ def _accuracy(
     }
 
 
-def _tally(run: ChunkedRun, part: Part, t0_ns: int) -> None:
+def _tally(run: ChunkedRun, part: Part) -> None:
     """Add a part's reading and accuracy to the run's."""
     log = part.log
     for warning in log.warnings:
@@ -387,9 +402,9 @@ def _joined(
     return {name: _concatenated([head[name], tail[name]], head[name]) for name in head}
 
 
-def _clock_offsets(measurements: Mapping[str, Measurement]) -> tuple[int, int]:
+def _clock_offsets(*logs: Mapping[str, Measurement]) -> tuple[int, int]:
     """(min, max) over the streams of stamp − receipt time, ns (0, 0 without samples)."""
-    offsets = [m.t_ns - m.log_time_ns for m in measurements.values() if len(m)]
+    offsets = [m.t_ns - m.log_time_ns for log in logs for m in log.values() if len(m)]
     if not offsets:
         return 0, 0
     return int(min(o.min() for o in offsets)), int(max(o.max() for o in offsets))
