@@ -169,18 +169,7 @@ def _long_log(out: Path, seconds: float, chunk_s: float) -> dict[str, Any]:
     chunks on 1 and 2 workers; the 2-worker estimate against the one process's."""
     out.mkdir(parents=True, exist_ok=True)
     log, config = out / "humanoid_push_long.mcap", out / "humanoid_push_long.toml"
-    if not log.exists():
-        done = subprocess.run(
-            [
-                *(*PHYSFUSE, "simulate", "humanoid_push", "--out", str(log)),
-                *("--duration", str(seconds), "--config-out", str(config), "--quiet"),
-            ],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-        )
-        if done.returncode:
-            raise SystemExit(f"simulate: {done.stderr[-2000:]}")
+    _simulated(log, config, seconds)
     command = [*PHYSFUSE, "estimate", str(log), "--config", str(config), "--quiet"]
     runs: dict[str, Any] = {}
     for name, extra in (
@@ -203,6 +192,23 @@ def _long_log(out: Path, seconds: float, chunk_s: float) -> dict[str, Any]:
         / runs["chunks_2_workers"]["wall_s"],
         **_chunked_against_one(out / "one_process", out / "chunks_2_workers"),
     }
+
+
+def _simulated(log: Path, config: Path, seconds: float) -> None:
+    """humanoid_push simulated for `seconds` into `log` and `config`, unless it is there."""
+    if log.exists():
+        return
+    done = subprocess.run(
+        [
+            *(*PHYSFUSE, "simulate", "humanoid_push", "--out", str(log)),
+            *("--duration", str(seconds), "--config-out", str(config), "--quiet"),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    )
+    if done.returncode:
+        raise SystemExit(f"simulate: {done.stderr[-2000:]}")
 
 
 def _chunked_against_one(one_dir: Path, chunked_dir: Path) -> dict[str, Any]:
@@ -236,18 +242,7 @@ def _hour_log(out: Path, seconds: float, chunk_s: float, init: str | None) -> di
     chunks on 2 workers, each with its peak memory; the chunked estimate against the one."""
     out.mkdir(parents=True, exist_ok=True)
     log, config = out / "humanoid_push.mcap", out / "humanoid_push.toml"
-    if not log.exists():
-        done = subprocess.run(
-            [
-                *(*PHYSFUSE, "simulate", "humanoid_push", "--out", str(log)),
-                *("--duration", str(seconds), "--config-out", str(config), "--quiet"),
-            ],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-        )
-        if done.returncode:
-            raise SystemExit(f"simulate: {done.stderr[-2000:]}")
+    _simulated(log, config, seconds)
     command = [*PHYSFUSE, "estimate", str(log), "--config", str(config), "--quiet"]
     command += ["--init", init] if init else []
     runs: dict[str, Any] = {}

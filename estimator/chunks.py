@@ -150,7 +150,7 @@ def estimate_chunked(
             if unanchored_base and previous is not None:  # continue the chunk before
                 est = placed_after(model, est, 0, previous, previous.T - 1)
             previous = est  # its last knot is the next chunk's first
-            part.estimate = _knots(est, slice(0, b - a))
+            part.estimate = est.at(slice(0, b - a))
             _tally(run, part)
             on_part(part)
             parts_done.append(part.summary)
@@ -246,8 +246,8 @@ def estimate_chunk(
         k: samples_within(m, int(knots[0]), int(knots[-1])) for k, m in log.measurements.items()
     }
     est, summary = estimate(config, measurements, settings, knots=np.asarray(knots))
-    mine = _knots(est, own)
-    counted = _knots(mine, slice(0, count))
+    mine = est.at(own)
+    counted = mine.at(slice(0, count))
     accuracy = _accuracy(Path(log_path), config, measurements, counted, trim)
     kept = {
         k: int(np.count_nonzero((m.log_time_ns >= share[0]) & (m.log_time_ns < share[1])))
@@ -414,24 +414,6 @@ def _has_mocap(*logs: Log) -> bool:
     from estimator.leg_odometry import MOCAP_KINDS
 
     return any(m.kind in MOCAP_KINDS and len(m) for log in logs for m in log.measurements.values())
-
-
-def _knots(est: Estimate, kept: slice) -> Estimate:
-    """The estimate's knots `kept` (costs as they were)."""
-    return replace(
-        est,
-        t_ns=est.t_ns[kept],
-        qpos=est.qpos[kept],
-        qvel=est.qvel[kept],
-        qacc=est.qacc[kept],
-        qfrc_inverse=est.qfrc_inverse[kept],
-        qfrc_known=est.qfrc_known[kept],
-        qpos_std=est.qpos_std[kept],
-        constraints=tuple(est.constraints[kept]),
-        imu_bias={k: v[kept] for k, v in est.imu_bias.items()},
-        model_error={k: v[kept] for k, v in est.model_error.items()},
-        residuals={k: v[kept] for k, v in est.residuals.items()},
-    )
 
 
 def placed_after(

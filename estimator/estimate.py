@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -56,3 +56,21 @@ class Estimate:
     @property
     def T(self) -> int:
         return len(self.t_ns)
+
+    def at(self, knots: slice) -> Estimate:
+        """The estimate at some of its knots (its residual rows with them; costs as they were:
+        over all its knots)."""
+        return replace(
+            self,
+            t_ns=self.t_ns[knots],
+            qpos=self.qpos[knots],
+            qvel=self.qvel[knots],
+            qacc=self.qacc[knots],
+            qfrc_inverse=self.qfrc_inverse[knots],
+            qfrc_known=self.qfrc_known[knots],
+            qpos_std=self.qpos_std[knots],
+            constraints=tuple(self.constraints[knots]),
+            imu_bias={name: b[knots] for name, b in self.imu_bias.items()},
+            model_error={name: e[knots] for name, e in self.model_error.items()},
+            residuals={name: r[knots] for name, r in self.residuals.items()},
+        )

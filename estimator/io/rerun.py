@@ -319,23 +319,8 @@ class LiveRecording:
 
 def _knots_of(estimate: Estimate, knots: range) -> Estimate:
     """The estimate at some of its knots (no residuals)."""
-    at = slice(knots.start, knots.stop)
-    return replace(
-        estimate,
-        t_ns=estimate.t_ns[at],
-        qpos=estimate.qpos[at],
-        qvel=estimate.qvel[at],
-        qacc=estimate.qacc[at],
-        qfrc_inverse=estimate.qfrc_inverse[at],
-        qfrc_known=estimate.qfrc_known[at],
-        qpos_std=estimate.qpos_std[at],
-        constraints=estimate.constraints[at],
-        imu_bias={name: b[at] for name, b in estimate.imu_bias.items()},
-        model_error={name: e[at] for name, e in estimate.model_error.items()},
-        residuals={},
-        residual_labels={},
-        cost_by_type={},
-    )
+    part = estimate.at(slice(knots.start, knots.stop))
+    return replace(part, residuals={}, residual_labels={}, cost_by_type={})
 
 
 def _check_display() -> None:
