@@ -2,7 +2,12 @@
 `UnmodeledForces`.
 
 1. Windowed fit: per body, the force each knot alone asks for (I_kb⁻¹ g_kb, `unmodeled`),
-   its component-wise median over each window of L knots (`window_s`): F̂_kb.
+   its component-wise median over each window of L knots (`window_s`): F̂_kb. Left out: the
+   knots whose residual no force on one body explains (`unexplained` above its
+   `OUTLIER_QUANTILE` over the log) — where the estimate let the motion disagree with the
+   model (its physics kernel's outliers: a foot chattering on touchdown asks for hundreds of
+   newtons on every other knot, and five such in a window move its median); a push is
+   explained by a force on its body. A window needs half its knots.
 2. Calibration from the log's own residuals: per body, a robust mean μ_b and covariance C_b of
    F̂_kb over the log (the trimmed covariance of the 90% of windows nearest the median,
    corrected for the trimming, iterated): events are rare, so they do not set the scale.
@@ -34,6 +39,7 @@ TRIM = 0.9  # the fraction of windows that set the calibration
 GUARD_S, REFERENCE_S = 0.35, 1.5  # `local_scale`: the cells around a knot it compares with
 REFERENCE_QUANTILE = 0.5
 JOIN_S = 0.1  # alarms closer than this are one event
+OUTLIER_QUANTILE = 0.99  # knots less explained than this fraction of the log's are left out
 HUBER = 4.0  # a knot's misfit beyond this many medians is down-weighted (`robust_fit`)
 RIDGE = 1e-9  # relative, keeps a body with no information at a knot solvable
 
@@ -98,6 +104,7 @@ def detect(forces: UnmodeledForces, settings: DetectorSettings | None = None) ->
     T, B = forces.grad.shape[:2]
     L = max(1, round(settings.window_s / forces.h))
     per_knot = knot_forces(forces)
+    per_knot[outliers(unexplained(forces))] = np.nan
     force = np.full((T, B, 3), np.nan)
     mean, cov = np.zeros((B, 3)), np.tile(np.eye(3), (B, 1, 1))
     d2 = np.full((T, B), np.nan)
@@ -187,6 +194,23 @@ def local_scale(d2: np.ndarray, h: float, causal: bool) -> np.ndarray:
     return out
 
 
+def unexplained(forces: UnmodeledForces) -> np.ndarray:
+    """(T,) what of each knot's misfit no constant force on one body explains: rᵀS⁻¹r −
+    max_b g_kbᵀ I_kb⁻¹ g_kb (NaN where the knot has no residual)."""
+    explained = np.einsum("tbi,tbi->tb", forces.grad, np.nan_to_num(knot_forces(forces)))
+    return forces.misfit - explained.max(axis=1, initial=0.0)
+
+
+def outliers(unexplained: np.ndarray, cut: float | None = None) -> np.ndarray:
+    """(T,) bool: the knots above `cut` (default: the `OUTLIER_QUANTILE` of `unexplained`)."""
+    finite = unexplained[np.isfinite(unexplained)]
+    if cut is None:
+        if not finite.size:
+            return np.zeros(len(unexplained), dtype=bool)
+        cut = float(np.quantile(finite, OUTLIER_QUANTILE))
+    return np.nan_to_num(unexplained, nan=-np.inf) > cut
+
+
 def knot_forces(forces: UnmodeledForces) -> np.ndarray:
     """(T, B, 3) the force each knot alone asks for on each body, I_kb⁻¹ g_kb (NaN: none)."""
     out = np.full(forces.grad.shape, np.nan)
@@ -197,13 +221,18 @@ def knot_forces(forces: UnmodeledForces) -> np.ndarray:
 
 def windowed_median(x: np.ndarray, L: int, causal: bool) -> np.ndarray:
     """(T, 3) component-wise median of x (T, 3) over windows of L knots ending at each knot
-    (causal) or centred on it; NaN where the window is not whole or holds a NaN. A median:
-    a knot or two the model cannot explain (a foot touching down a knot early asks for
-    hundreds of newtons) do not move it; a force that lasts the window does."""
+    (causal) or centred on it, of the knots that have a value (NaN: left out); NaN where the
+    window is not whole or fewer than half its knots have one. A median: a knot or two the
+    model cannot explain (a foot touching down a knot early asks for hundreds of newtons) do
+    not move it; a force that lasts the window does."""
     T = len(x)
     pad = np.full((L - 1, x.shape[1]), np.nan)
     windows = np.lib.stride_tricks.sliding_window_view(np.vstack([pad, x]), L, axis=0)
-    out = np.median(windows, axis=-1)  # row k: the window ending at k (NaN if not whole)
+    has = np.isfinite(windows).all(axis=1)  # (T, L)
+    out = np.full((T, x.shape[1]), np.nan)
+    enough = has.sum(axis=1) >= (L + 1) // 2
+    enough[: L - 1] = False  # not whole
+    out[enough] = np.nanmedian(windows[enough], axis=-1)
     if causal:
         return out[:T]
     shift = L // 2  # centred: the window ending at k + L//2

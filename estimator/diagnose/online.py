@@ -1,12 +1,14 @@
 """`detect`'s unmodeled-contact test run causally, knot by knot, on a stream's newest
 estimates (`estimator.stream.Stream(diagnose=...)`).
 
-Per new knot: the force each body's residual asks for (`unmodeled_forces`), its median over
-the window of L knots that ends at the knot, d² against the calibration, divided by the
-noise level of the knots `GUARD_S` to `REFERENCE_S` before (`local_scale`, causal), against
-the batch detector's threshold. The calibration (a robust mean and covariance per body,
-`robust_mean_cov`) comes from the stream's own windows so far: nothing is tested before
-`CALIBRATE_S` of them, and it is refitted every `RECALIBRATE_S` on the last `HISTORY_S`.
+Per new knot: the force each body's residual asks for (`unmodeled_forces`; nothing from a knot
+whose residual no force on one body explains beyond the `OUTLIER_QUANTILE` of the stream's
+knots at the last calibration), its median over the window of L knots that ends at the knot,
+d² against the calibration, divided by the noise level of the knots `GUARD_S` to
+`REFERENCE_S` before (`local_scale`, causal), against the batch detector's threshold. The
+calibration (a robust mean and covariance per body, `robust_mean_cov`) comes from the
+stream's own windows so far: nothing is tested before `CALIBRATE_S` of them, and it is
+refitted every `RECALIBRATE_S` on the last `HISTORY_S`.
 
 An alarm that has lasted a window is reported at once (`Event.ongoing`: body, force and
 interval from the knots so far; `detected_ns` the knot that confirmed it), and again, final,
@@ -23,6 +25,7 @@ import numpy as np
 
 from estimator.diagnose.detect import (
     JOIN_S,
+    OUTLIER_QUANTILE,
     REFERENCE_S,
     Detection,
     DetectorSettings,
@@ -32,6 +35,8 @@ from estimator.diagnose.detect import (
     knot_forces,
     local_scale,
     robust_mean_cov,
+    unexplained,
+    windowed_median,
 )
 from estimator.diagnose.unmodeled import (
     CONTACT_MARGIN_M,
@@ -69,6 +74,9 @@ class OnlineDetector:
         self.info: list[np.ndarray] = []  # (B, 3, 3) per knot
         self.grad: list[np.ndarray] = []  # (B, 3)
         self.own: list[np.ndarray] = []  # (B, 3) the force each knot alone asks for
+        self.misfit: list[float] = []  # rᵀS⁻¹r per knot
+        self.unexplained: list[float] = []  # what no force on one body explains of it
+        self.cut = np.inf  # knots less explained are left out (`detect.outliers`)
         self.force: list[np.ndarray] = []  # (B, 3) the windowed force F̂
         self.d2_raw: list[np.ndarray] = []  # (B,) before the local scale
         self.d2: list[np.ndarray] = []  # (B,)
@@ -95,10 +103,16 @@ class OnlineDetector:
             self.mean, self.cov = np.zeros((B, 3)), np.tile(np.eye(3), (B, 1, 1))
             self.cov_inv = self.cov.copy()
             self.threshold = alarm_threshold(self.settings, B)
-        per_knot = knot_forces(forces)
+        per_knot, left = knot_forces(forces), unexplained(forces)
         events = []
         for k in knots:
-            events += self._knot(int(est.t_ns[k]), forces.info[k], forces.grad[k], per_knot[k])
+            events += self._knot(
+                int(est.t_ns[k]),
+                forces.info[k],
+                forces.grad[k],
+                per_knot[k],
+                (float(forces.misfit[k]), float(left[k])),
+            )
         return events
 
     def close(self) -> list[Event]:
@@ -111,14 +125,26 @@ class OnlineDetector:
 
     # -- one knot ---------------------------------------------------------------------------
 
-    def _knot(self, t_ns: int, info: np.ndarray, grad: np.ndarray, own: np.ndarray) -> list:
+    def _knot(
+        self,
+        t_ns: int,
+        info: np.ndarray,
+        grad: np.ndarray,
+        own: np.ndarray,
+        misfit: tuple[float, float],
+    ) -> list:
         self.t_ns.append(t_ns)
         self.info.append(info)
         self.grad.append(grad)
-        self.own.append(own)
+        self.misfit.append(misfit[0])
+        self.unexplained.append(misfit[1])
+        self.own.append(own if not misfit[1] > self.cut else np.full_like(own, np.nan))
         B = len(self.bodies)
-        window = np.array(self.own[-self.L :])
-        force = np.median(window, axis=0) if len(window) == self.L else np.full((B, 3), np.nan)
+        window = np.array(self.own[-self.L :])  # (≤ L, B, 3)
+        force = np.full((B, 3), np.nan)
+        if len(window) == self.L:
+            for b in range(B):
+                force[b] = windowed_median(window[:, b], self.L, causal=True)[-1]
         self.force.append(force)
         self.d2_raw.append(self._d2(force))
         self.count += 1
@@ -143,6 +169,9 @@ class OnlineDetector:
                 self.mean[b], self.cov[b] = robust_mean_cov(force[ok, b])
                 self.cov_inv[b] = np.linalg.inv(self.cov[b])
                 self.seen[b] = True
+        left = np.array(self.unexplained)
+        left = left[np.isfinite(left)]
+        self.cut = float(np.quantile(left, OUTLIER_QUANTILE)) if left.size else np.inf
         self.calibrated_at = self.count
         # the reference cells of the local scale, under the new calibration
         for i in range(max(0, len(self.force) - self.reach), len(self.force)):
@@ -161,6 +190,8 @@ class OnlineDetector:
         if extra > 0 and self.alarm is None:
             for buffer in (self.t_ns, self.info, self.grad, self.force, self.d2_raw, self.d2):
                 del buffer[:extra]
+            for numbers in (self.misfit, self.unexplained):
+                del numbers[:extra]
             del self.own[:extra]
 
     # -- alarms → events --------------------------------------------------------------------
@@ -197,6 +228,7 @@ class OnlineDetector:
             self.body_ids,
             np.array(self.info[span]),
             np.array(self.grad[span]),
+            np.array(self.misfit[span]),
         )
         det = Detection(
             forces,

@@ -49,6 +49,9 @@ class UnmodeledForces:
     body_ids: (B,) their MuJoCo ids
     info:   (T, B, 3, 3) I_kb (module docstring), 0 where the knot has no physics residual
     grad:   (T, B, 3) g_kb
+    misfit: (T,) rᵀ S⁻¹ r, the knot's whitened residual with the contact forces' error
+            marginalized (NaN where the knot has none); what a force on body b explains of it
+            is g_kbᵀ I_kb⁻¹ g_kb (`detect.unexplained`)
     """
 
     t_ns: np.ndarray
@@ -56,6 +59,7 @@ class UnmodeledForces:
     body_ids: np.ndarray
     info: np.ndarray
     grad: np.ndarray
+    misfit: np.ndarray
 
     @property
     def h(self) -> float:
@@ -92,6 +96,7 @@ def unmodeled_forces(
     )
     info = np.zeros((est.T, len(bodies), 3, 3))
     grad = np.zeros((est.T, len(bodies), 3))
+    misfit = np.full(est.T, np.nan)
     data = mujoco.MjData(model)
     jacp = np.zeros((3, model.nv))
     J_b = np.zeros((len(bodies), model.nv, 3))
@@ -110,8 +115,9 @@ def unmodeled_forces(
         S_inv_A = S_inv_A.reshape(m, len(bodies), 3).transpose(1, 0, 2)
         info[k] = np.einsum("bmi,bmj->bij", A_b, S_inv_A) + np.eye(3) / force_prior**2
         grad[k] = np.einsum("bmi,m->bi", S_inv_A, knot.r)
+        misfit[k] = knot.r @ np.linalg.solve(knot.S, knot.r)
     names = tuple(model.body(int(b)).name or f"body {b}" for b in bodies)
-    return UnmodeledForces(est.t_ns, names, bodies, info, grad)
+    return UnmodeledForces(est.t_ns, names, bodies, info, grad, misfit)
 
 
 @dataclass(frozen=True)
