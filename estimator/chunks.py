@@ -82,7 +82,6 @@ class ChunkedRun:
     """What a chunked estimate leaves once its parts are handed on."""
 
     summary: Summary
-    t0_ns: int  # the first knot
     warnings: list[str] = field(default_factory=list)  # the log's (damage), once each
     skipped: dict[str, dict[str, Any]] = field(default_factory=dict)  # per stream
     lost: list[LostData] = field(default_factory=list)
@@ -128,7 +127,7 @@ def estimate_chunked(
     cuts = [(a, min(a + n, knots)) for a in range(0, knots, n)]
     # each chunk's share of the log's receive times: consecutive, together all of it
     shares = [span[0]] + [int(t_ns[a]) - clock[1] for a, _ in cuts[1:]] + [span[1] + 1]
-    run = ChunkedRun(Summary(0.0, 0, h, 0, [], [], {}, [], 0.0), int(t_ns[0]))
+    run = ChunkedRun(Summary(0.0, 0, h, 0, [], [], {}, [], 0.0))
     parts_done: list[Summary] = []
     previous: Estimate | None = None
     task = as_task(estimate_chunk, WORKER_ENV)
