@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tomlkit
 
 from estimator.errors import ConfigError
 from estimator.fleet import expand_logs, output_names, task_processes
@@ -223,3 +224,21 @@ def test_chunks_refuse_what_they_cannot_cut_before_the_log_is_read(tmp_path):
         assert done.returncode == 2
         assert done.stderr.count("\n") == 1 and said in done.stderr, done.stderr
         assert not (tmp_path / "out").exists()
+
+
+def test_chunks_flag_commands_that_disagree_with_the_efforts(tmp_path):
+    """A chunked run still checks the commands against the logged efforts (over its first
+    chunk): two actuators swapped in the command stream are named."""
+    document = tomlkit.parse((ROOT / "configs" / "quadruped_trot.toml").read_text())
+    names = document["streams"]["command"]["actuators"]
+    names[1], names[2] = names[2], names[1]
+    document["model"] = str(ROOT / "physics" / "models" / "quadruped.xml")
+    config = tmp_path / "swapped.toml"
+    config.write_text(tomlkit.dumps(document))
+    argv = ["estimate", "recordings/quadruped_trot.mcap", "--config", str(config), "--quiet"]
+    argv += ["--out", str(tmp_path / "out"), "--method", "kinematic", "--chunk", "1"]
+    done = _run([*argv, "--workers", "2"])
+    assert done.returncode == 0, done.stderr
+    assert "warning: commands to actuator 'front_left_knee'" in done.stderr
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert any("'front_left_knee'" in w for w in summary["warnings"])

@@ -227,6 +227,7 @@ def _estimate_in_chunks(
     imu_sites = _imu_sites(config)
     h = settings.h or float(model.opt.timestep)
     shown: list[Estimate] = []
+    command_lines: list[str] = []
     with (
         EstimateWriter(tmp / "estimate.mcap", model, config.model, h, run_id) as out_mcap,
         RecordingWriter(tmp / "estimate.rrd", model, 0, run_id) as rrd,
@@ -237,6 +238,11 @@ def _estimate_in_chunks(
             if not shown:  # the recording's time origin: the first knot
                 shown.append(part.estimate)
                 rrd.t0_ns = int(part.estimate.t_ns[0])
+                # commands that disagree with the logged efforts, over the first chunk
+                checks = commands_against_efforts(config, model, part.log.measurements)
+                command_lines.extend(command_warnings(checks))
+                for line in command_lines:
+                    print(f"physfuse estimate: warning: {line}", file=sys.stderr)
             out_mcap.write(part.estimate, range(part.estimate.T), imu_sites)
             rrd.write(part.estimate, part.log)
 
@@ -255,11 +261,12 @@ def _estimate_in_chunks(
         print(f"physfuse estimate: warning: {warning}", file=sys.stderr)
     for line in skipped_lines(run.skipped):
         print(f"physfuse estimate: {line}", file=sys.stderr)
-    summary = replace(run.summary, warnings=run.warnings + run.summary.warnings)
+    input_warnings = run.warnings + command_lines
+    summary = replace(run.summary, warnings=input_warnings + run.summary.warnings)
     lost = [asdict(x) for x in run.lost]
     report = _report(summary, settings, run.accuracy, args.out, run_id, run.skipped, lost)
     (tmp / "summary.json").write_text(json.dumps(report, indent=2) + "\n")
-    return report, summary, run.warnings, shown[0]
+    return report, summary, input_warnings, shown[0]
 
 
 @contextlib.contextmanager
