@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import json
 import sys
 import uuid
@@ -235,8 +236,8 @@ def _estimate_in_chunks(
     ):
 
         def write(part: chunks.Part) -> None:
-            if not shown:  # the recording's time origin: the first knot
-                shown.append(part.estimate)
+            if not shown:  # the recording's time origin: the first knot (a copy of it)
+                shown.append(copy.deepcopy(part.estimate.at(slice(0, 1))))
                 rrd.t0_ns = int(part.estimate.t_ns[0])
                 # commands that disagree with the logged efforts, over the first chunk
                 checks = commands_against_efforts(config, model, part.log.measurements)
