@@ -30,11 +30,12 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from estimator import heap
 from estimator.batch import estimate
 from estimator.config import Config, load_config
 from estimator.errors import ConfigError, LogError, MissingTopicError, PhysfuseError
 from estimator.estimate import Estimate
-from estimator.fleet import as_task, ray_session, release_memory
+from estimator.fleet import as_task, ray_session
 from estimator.io.logs import Log, LostData, Measurement, read_log
 from estimator.io.logs.source import log_time_span
 from estimator.io.state_topics import at_times, read_ground_truth, trajectory_errors
@@ -125,7 +126,7 @@ def estimate_chunked(
     clock = _clock_offsets(head.measurements, tail.measurements)  # a drift over the log too
     unanchored_base = free_base(model)[0] >= 0 and not _has_mocap(head, tail)
     del head, tail
-    release_memory()  # the softness fit's window
+    heap.release()  # the softness fit's window
     knots, n, margin = len(t_ns), max(8, round(chunk_s / h)), round(overlap_s / h)
     cuts = [(a, min(a + n, knots)) for a in range(0, knots, n)]
     # each chunk's share of the log's receive times: consecutive, together all of it
@@ -159,7 +160,7 @@ def estimate_chunked(
             on_part(part)
             parts_done.append(part.summary)
             del part, est
-            release_memory()  # the part's many small arrays (contacts per knot)
+            heap.release()  # the part's many small arrays (contacts per knot)
             if progress:
                 progress(i + 1, len(cuts))
     missing = [
@@ -246,7 +247,7 @@ def estimate_chunk(
     the part of it this chunk accounts for), the estimate on `knots`, its `own` knots (the
     first `count`, and the next chunk's first) returned with their accuracy against the log's
     ground truth (if any)."""
-    release_memory()  # what the worker's task before this one freed
+    heap.release()  # what the worker's task before this one freed
     config = load_config(config_path)
     log = _read_slice(Path(log_path), config, reach, share)
     measurements = {

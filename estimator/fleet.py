@@ -214,18 +214,6 @@ def as_task(function: Callable[..., Any], env_vars: Mapping[str, str] | None = N
     return ray.remote(num_cpus=1, max_retries=RETRIES, runtime_env=env)(function)
 
 
-def release_memory() -> None:
-    """Hand the heap's freed pages back to the system: a garbage collection, then glibc's
-    malloc_trim(0) (the freed blocks inside the heap too, not only its top; where the C
-    library has no malloc_trim, the collection only)."""
-    import ctypes
-    import gc
-
-    gc.collect()
-    with contextlib.suppress(AttributeError, OSError):
-        ctypes.CDLL(None).malloc_trim(0)
-
-
 @contextlib.contextmanager
 def ray_session(workers: int | None = None, address: str | None = None) -> Iterator[None]:
     """Ray for the block: connected to the cluster at `address`, or a local Ray of `workers`

@@ -13,6 +13,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from estimator import heap
 from estimator.actuation import moment_dense
 from estimator.config import Config
 from estimator.contact_forces import balanced_constraints
@@ -241,6 +242,7 @@ def smooth(
             passes["knots_linearized"] += r.linearizations * (e - s - 2)
             passes["knots_evaluated"] += r.evaluations * (e - s - 2)
         converged.append(result.converged)
+        heap.trim()  # the window's freed arrays: the sweep's memory stays what it holds
         i += 1
         if progress:
             progress(i, max(total, i))
