@@ -254,9 +254,14 @@ def estimate_chunk(
         k: samples_within(m, int(knots[0]), int(knots[-1])) for k, m in log.measurements.items()
     }
     est, summary = estimate(config, measurements, settings, knots=np.asarray(knots))
+    summary.warnings += _joins_in_gaps(measurements, knots, own.start, own.start + count)
     mine = est.at(own)
     counted = mine.at(slice(0, count))
-    accuracy = _accuracy(Path(log_path), config, measurements, counted, trim)
+    # the raw measurements interpolated over all the chunk's knots (a gap across its edge
+    # between samples on both sides, as over the whole log), then its own
+    model = config.load_model()
+    raw = initial_trajectory(model, measurements, knots)[own][:count]
+    accuracy = _accuracy(Path(log_path), model, raw, counted, trim)
     kept = {
         k: int(np.count_nonzero((m.log_time_ns >= share[0]) & (m.log_time_ns < share[1])))
         for k, m in log.measurements.items()
@@ -266,6 +271,35 @@ def estimate_chunk(
         for k, m in log.measurements.items()
     }
     return Part(mine, summary, replace(log, measurements=drawn), accuracy, kept)
+
+
+def _joins_in_gaps(
+    measurements: Mapping[str, Measurement], knots: np.ndarray, first: int, end: int
+) -> list[str]:
+    """A line for each mocap stream with no sample in all the log a chunk sees past one of its
+    joins (its own knots first … end − 1 of `knots`): a gap longer than the overlap, across
+    which the estimate at the join is extrapolated from one side, where one process sees both."""
+    from estimator.leg_odometry import MOCAP_KINDS
+
+    seen = []  # (the join's knot, the farthest knot seen past it)
+    if first > 0:
+        seen.append((int(knots[first]), int(knots[0])))
+    if end < len(knots):
+        seen.append((int(knots[end - 1]), int(knots[-1])))
+    lines = []
+    for name, m in measurements.items():
+        if m.kind not in MOCAP_KINDS or not len(m):
+            continue
+        for join, far in seen:
+            lo, hi = min(join, far), max(join, far)
+            if not np.any((m.t_ns > lo) & (m.t_ns < hi)):
+                side = "before" if far < join else "after"
+                lines.append(
+                    f"stream {name!r} has no sample in the {(hi - lo) / 1e9:.2f} s this chunk "
+                    f"sees {side} its join: the estimate there is extrapolated across the gap; "
+                    "a --chunk-overlap longer than the gap sees across it"
+                )
+    return lines
 
 
 def _read_slice(path: Path, config: Config, reach: tuple[int, int], share: tuple[int, int]) -> Log:
@@ -301,21 +335,19 @@ def _concatenated(pieces: list[Measurement], counted: Measurement) -> Measuremen
 
 def _accuracy(
     path: Path,
-    config: Config,
-    measurements: Mapping[str, Measurement],
+    model: mujoco.MjModel,
+    raw: np.ndarray,
     est: Estimate,
     trim: tuple[int, int],
 ) -> dict[str, dict[str, tuple[float, int]]] | None:
-    """Per metric (RMSE, knots) of the raw measurements and of the estimate on a part's own
-    knots (`trim` knots off the log's ends), against the ground truth received over them (and
-    a second either side); None without ground truth."""
-    model = config.load_model()
+    """Per metric (RMSE, knots) of the raw measurements' trajectory `raw` and of the estimate
+    on a part's own knots (`trim` knots off the log's ends), against the ground truth
+    received over them (and a second either side); None without ground truth."""
     around = (int(est.t_ns[0]) - CLOCK_SLACK_NS, int(est.t_ns[-1]) + CLOCK_SLACK_NS)
     try:
         truth = at_times(*read_ground_truth(path, model, around), est.t_ns)
     except LogError:
         return None
-    raw = initial_trajectory(model, measurements, est.t_ns)
     a, b = trim[0], est.T - trim[1]
     return {
         name: {

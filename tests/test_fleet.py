@@ -242,3 +242,22 @@ def test_chunks_flag_commands_that_disagree_with_the_efforts(tmp_path):
     assert "warning: commands to actuator 'front_left_knee'" in done.stderr
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert any("'front_left_knee'" in w for w in summary["warnings"])
+
+
+def test_a_join_inside_a_mocap_gap_longer_than_the_overlap_is_named():
+    from estimator.chunks import _joins_in_gaps
+    from estimator.io.logs.measurements import BadSampleCounts, Measurement
+
+    knots = np.arange(0, 4_000_000_000, 10_000_000)  # 4 s of 10 ms knots
+    # mocap at 100 Hz with a gap from 1.6 s to 2.9 s; the chunk's own knots 1–2 s
+    t = knots[(knots < 1_600_000_000) | (knots >= 2_900_000_000)]
+    mocap = Measurement(
+        "mocap_base", "pose", "/base", "body", ("base",), ("px",), t, t,
+        np.zeros((len(t), 1, 1)), BadSampleCounts(),
+    )  # fmt: skip
+    seen_to = {2.5: 250, 3.0: 301}  # the last knot the chunk sees: 0.5 s and 1 s past 2 s
+    first, end = 100, 200
+    short = _joins_in_gaps({"mocap_base": mocap}, knots[: seen_to[2.5]], first, end)
+    assert len(short) == 1
+    assert "'mocap_base'" in short[0] and "0.50 s" in short[0] and "after its join" in short[0]
+    assert _joins_in_gaps({"mocap_base": mocap}, knots[: seen_to[3.0]], first, end) == []
