@@ -257,11 +257,7 @@ def estimate_chunk(
     summary.warnings += _joins_in_gaps(measurements, knots, own.start, own.start + count)
     mine = est.at(own)
     counted = mine.at(slice(0, count))
-    # the raw measurements interpolated over all the chunk's knots (a gap across its edge
-    # between samples on both sides, as over the whole log), then its own
-    model = config.load_model()
-    raw = initial_trajectory(model, measurements, knots)[own][:count]
-    accuracy = _accuracy(Path(log_path), model, raw, counted, trim)
+    accuracy = _accuracy(Path(log_path), config, measurements, knots, own.start, counted, trim)
     kept = {
         k: int(np.count_nonzero((m.log_time_ns >= share[0]) & (m.log_time_ns < share[1])))
         for k, m in log.measurements.items()
@@ -335,19 +331,25 @@ def _concatenated(pieces: list[Measurement], counted: Measurement) -> Measuremen
 
 def _accuracy(
     path: Path,
-    model: mujoco.MjModel,
-    raw: np.ndarray,
+    config: Config,
+    measurements: Mapping[str, Measurement],
+    knots: np.ndarray,
+    first: int,
     est: Estimate,
     trim: tuple[int, int],
 ) -> dict[str, dict[str, tuple[float, int]]] | None:
-    """Per metric (RMSE, knots) of the raw measurements' trajectory `raw` and of the estimate
-    on a part's own knots (`trim` knots off the log's ends), against the ground truth
-    received over them (and a second either side); None without ground truth."""
+    """Per metric (RMSE, knots) of the raw measurements and of the estimate on a part's own
+    knots (`trim` knots off the log's ends), against the ground truth received over them (and
+    a second either side); None without ground truth. The raw measurements are interpolated
+    over `knots` (all the chunk's: a gap across its edge between the samples on both sides,
+    as over the whole log), of which the part's begin at `first`."""
+    model = config.load_model()
     around = (int(est.t_ns[0]) - CLOCK_SLACK_NS, int(est.t_ns[-1]) + CLOCK_SLACK_NS)
     try:
         truth = at_times(*read_ground_truth(path, model, around), est.t_ns)
     except LogError:
         return None
+    raw = initial_trajectory(model, measurements, knots)[first : first + est.T]
     a, b = trim[0], est.T - trim[1]
     return {
         name: {
