@@ -428,7 +428,7 @@ def _print_fleet(r: dict[str, Any]) -> None:
     d = g["position_diff_over_sigma"]
     print(
         f"  chunked vs one process, {g['body']} position: max {d['max']:.2f} σ, p99 "
-        f"{d['p99']:.2f} σ, {d['within_1_sigma']:.1%} within 1 σ; max "
+        f"{d['p99']:.2f} σ, {d['within_1_sigma']:.3%} within 1 σ; max "
         f"{g['position_diff_max_mm']:.4f} mm, joints {g['joint_diff_max_deg']:.2g}°"
     )
     k = r["killed_worker"]
@@ -448,7 +448,7 @@ def _print_hour(g: dict[str, Any]) -> None:
     d = g["position_diff_over_sigma"]
     print(
         f"  chunked vs one process, {g['body']} position: max {d['max']:.2f} σ, p99 "
-        f"{d['p99']:.2f} σ, {d['within_1_sigma']:.1%} within 1 σ; max "
+        f"{d['p99']:.2f} σ, {d['within_1_sigma']:.3%} within 1 σ; max "
         f"{g['position_diff_max_mm']:.4f} mm, joints {g['joint_diff_max_deg']:.2g}°"
     )
 
