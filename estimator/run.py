@@ -136,7 +136,15 @@ def smooth(
     # keeps [s, s + a) and hands keys s + a … on to the next window (with its past
     # marginalized onto them): its last `overlap` knots only look ahead for the kept ones.
     n_shared = (4 if settings.jerk_prior_std > 0 else 3) - 1  # keys two windows' rows share
-    total = max(1, -(-(T - W) // max(W - overlap - n_shared, 1)) + 1)
+    # Windows hand over at anchors every `step` knots of the log's clock (t // h), so that a
+    # slice of a log (a chunk) is swept in the windows the whole log is: the next window
+    # starts at the next anchor, or (join = "quiet") at the quietest key of the `early` knots
+    # before it, never later than `overlap` look-ahead allows (a0 knots on). `step` keeps the
+    # mean hand-over where the quiet range's middle was: a0 − early / 2.
+    early = overlap // 2 if settings.join == "quiet" else 0
+    step = max(1, W - overlap - n_shared - early // 2)
+    clock = int(t_ns[0]) // round(h * 1e9)  # the first knot's index on the log's clock
+    total = max(1, -(-(T - W) // step) + 1)
     prior = None
     s, i = 0, 0
     window_starts = []
@@ -146,7 +154,10 @@ def smooth(
         window_starts.append(s)
         e = min(T, s + W)
         last = e == T
-        a = e - s if last else max(1, e - s - overlap - n_shared)  # the next window's start
+        # the next window's start: the next anchor's key, or (below) a key of its quiet range
+        a0 = max(1, e - s - overlap - n_shared)  # the most this window can keep
+        anchor = _next_anchor(clock + s + early, step) - clock - s
+        a = e - s if last else min(anchor, a0)
         window = {name: samples_within(m, t_ns[s], t_ns[e - 1]) for name, m in measurements.items()}
         problem = build_problem(config, window, settings, t_ns[s:e], compiled)
         if nb is None:
@@ -183,11 +194,11 @@ def smooth(
                 starts_at = {"kinematic": kinematic}
             else:
                 starts_at = {"kinematic": kinematic, **starts_at}
-        # the next window's start: where this one's kept knots end, or (join = "quiet") the
-        # quietest key of the later half of that range's look-ahead
+        # the next window's start: the anchor, or (join = "quiet") the quietest key of the
+        # `early` knots before it
         joins: int | range | None = None if last else a
-        if not last and settings.join == "quiet":
-            joins = range(max(1, a - overlap // 2), a + 1)
+        if not last and early:
+            joins = range(max(1, anchor - early), a + 1)
         solved = {
             name: solve_window(problem, q0, b0, False, prior=prior, marginalize=joins)
             for name, (q0, b0) in starts_at.items()
@@ -259,6 +270,11 @@ def smooth(
     return est, replace(
         summary, softness_fit=fitted, window_starts=window_starts, starts_tried=starts_tried
     )
+
+
+def _next_anchor(k: int, step: int) -> int:
+    """The first anchor (a multiple of `step` on the log's knot clock) after knot k."""
+    return k - k % step + step
 
 
 def _kinematic_start(

@@ -73,3 +73,22 @@ def test_a_quiet_join_avoids_an_impact():
     assert abs(join - 61) > span + 1 and join == 79  # the latest of the quiet keys
     # every candidate within reach of the impact: no quieter one, the latest
     assert quietest_join([prior], 200.0, range(55, 66), span) == 65
+
+
+def test_a_slice_of_the_log_is_swept_in_the_logs_windows(short_log):
+    """Windows hand over at anchors on the log's knot clock: a slice that starts anywhere (a
+    chunk of `estimate --chunk`) joins the whole log's windows at its first hand-over, and
+    from there gives its estimate."""
+    from estimator.knots import knot_grid
+
+    config, cut, settings, _ = short_log
+    settings = replace(settings, window_s=0.25, overlap_s=0.05)
+    knots = knot_grid(cut, settings.h or config.load_model().opt.timestep)
+    whole, swept = estimate(config, cut, settings, knots=knots)
+    lo = 37  # not a hand-over of the whole log's sweep
+    assert lo not in swept.window_starts
+    part, sliced = estimate(config, cut, settings, knots=knots[lo:])
+    starts = [lo + k for k in sliced.window_starts[1:]]
+    assert len(starts) >= 3 and set(starts) <= set(swept.window_starts)
+    later = slice(starts[1], None)  # a window on from the join: the same past summarized
+    assert np.abs(part.qpos[later.start - lo :] - whole.qpos[later]).max() < 2e-5
