@@ -4,7 +4,7 @@ estimate started and on where its windows lie (the question behind a chunked est
 matching the single-process one within σ, docs/fleet.md).
 
     .venv/bin/python benchmarks/excerpts.py LOG --config CONFIG --excerpt 2830 2900 \
-        --excerpt 2840.37 2882 [--against DIR ...] [--settings-from SUMMARY] [--out DIR]
+        --excerpt 2840.37 2882 [--against DIR ...] [--settings-from SUMMARY] [--out DIR] [--reuse]
 
 Each excerpt (seconds from the log's first knot) is estimated as a chunk of `estimate
 --chunk` is (`chunks.estimate_chunk`: its time slice of the file read, the estimate on its
@@ -14,7 +14,7 @@ excerpts, and each excerpt against each `--against` run's estimate.mcap — is c
 the knots both have, less `--skip` seconds at each end of the shorter: the first free body's
 position difference in units of the first one's reported σ (max and where, p99, knots beyond
 1 σ) and in mm, and the window hand-overs they share. Prints a table and writes
-DIR/excerpts.json.
+DIR/excerpts.json; each excerpt's estimate is kept in DIR for `--reuse`.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import pickle
 import platform
 import sys
 import time
@@ -62,6 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--settings-from", type=Path, help="a whole-log run's summary.json")
     ap.add_argument("--skip", type=float, default=1.0, help="s left out at each end")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--reuse", action="store_true", help="the excerpts DIR holds, not re-run")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "excerpts")
     args = ap.parse_args(argv)
     import ray
@@ -73,18 +75,26 @@ def main(argv: list[str] | None = None) -> int:
     settings, t_ns = _settings_and_knots(args.log, config, args.settings_from)
     h = settings.h or h
     task = as_task(_excerpt)
+    args.out.mkdir(parents=True, exist_ok=True)
+    saved = {(a, b): args.out / f"excerpt_{a:g}_{b:g}.pkl" for a, b in args.excerpt}
+    runs = {}
     with ray_session(args.workers):
-        refs = [
-            task.remote(str(args.config), str(args.log), settings, _slice(t_ns, a, b))
-            for a, b in args.excerpt
-        ]
-        runs = {f"{a:g}–{b:g} s": ray.get(r) for (a, b), r in zip(args.excerpt, refs, strict=True)}
+        refs = {
+            (a, b): task.remote(str(args.config), str(args.log), settings, _slice(t_ns, a, b))
+            for (a, b), path in saved.items()
+            if not (args.reuse and path.exists())
+        }
+        for (a, b), path in saved.items():  # each excerpt's estimate kept for --reuse
+            if (a, b) in refs:
+                path.write_bytes(pickle.dumps(ray.get(refs[(a, b)])))
+            runs[f"{a:g}–{b:g} s"] = pickle.loads(path.read_bytes())
     for folder in args.against:
         runs[str(folder)] = _read_run(folder, t_ns, args.excerpt)
     skip = round(args.skip / h)
-    rows = [
+    pairs = [
         _compare(x, runs[x], y, runs[y], t_ns[0], skip) for x, y in itertools.combinations(runs, 2)
     ]
+    rows = [r for r in pairs if r is not None]  # (pairs that share knots)
     report = {
         "log": str(args.log),
         "excerpts": {
@@ -99,7 +109,6 @@ def main(argv: list[str] | None = None) -> int:
             "workers": args.workers,
         },
     }
-    args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "excerpts.json").write_text(json.dumps(report, indent=1))
     print("| A | B | max σ | at s | p99 σ | knots > 1 σ | max mm | shared hand-overs |")
     print("|---|---|---|---|---|---|---|---|")
@@ -197,9 +206,11 @@ def _read_run(folder: Path, t_ns: np.ndarray, excerpts: list[list[float]]) -> di
     }
 
 
-def _compare(x: str, a: dict, y: str, b: dict, t0: int, skip: int) -> dict[str, Any]:
+def _compare(x: str, a: dict, y: str, b: dict, t0: int, skip: int) -> dict[str, Any] | None:
     common, ia, ib = np.intersect1d(a["t_ns"], b["t_ns"], return_indices=True)
     keep = slice(skip, max(skip, len(common) - skip))
+    if not len(common[keep]):
+        return None
     d = a["position"][ia][keep] - b["position"][ib][keep]
     z = np.abs(d) / a["sigma"][ia][keep]
     k = int(np.unravel_index(np.argmax(z), z.shape)[0])
