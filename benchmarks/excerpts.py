@@ -131,25 +131,29 @@ def _settings_and_knots(
     tail = read_log(
         log, config, log_time=(span[1] - round(HEAD_S * 1e9), span[1] + 1), require=False
     )
-    settings = Settings.from_config(config)
-    if summary is not None:
-        s = json.loads(summary.read_text())
-        settings = Settings(**s["settings"])
+    settings = Settings.from_config(config) if summary is None else run_settings(summary)
     h = settings.h or float(config.load_model().opt.timestep)
     t_ns = knot_grid(_joined(head.measurements, tail.measurements), h)
-    if summary is not None and s.get("softness_fit"):
-        fit = s["softness_fit"]
-        settings = replace(
-            settings,
-            softness_eps_scale=settings.softness_eps_scale * fit["eps_scale"],
-            softness_kappa_scale=settings.softness_kappa_scale * fit["kappa_scale"],
-            model_softness_std=max(fit["eps_scale_sigma"], fit["kappa_scale_sigma"]),
-            fit_softness="none",
-        )
-    else:
+    if summary is None:
         settings, _ = softness_fitted(config, head.measurements, settings, t_ns)
-        settings = replace(settings, fit_softness="none")
+    settings = replace(settings, fit_softness="none")
     return settings, t_ns
+
+
+def run_settings(summary: Path) -> Settings:
+    """A run's settings (its summary.json) with the contact softness it fitted folded in, as
+    every window of that run took them."""
+    s = json.loads(summary.read_text())
+    settings = Settings(**s["settings"])
+    fit = s.get("softness_fit")
+    if not fit:
+        return settings
+    return replace(
+        settings,
+        softness_eps_scale=settings.softness_eps_scale * fit["eps_scale"],
+        softness_kappa_scale=settings.softness_kappa_scale * fit["kappa_scale"],
+        model_softness_std=max(fit["eps_scale_sigma"], fit["kappa_scale_sigma"]),
+    )
 
 
 def _slice(t_ns: np.ndarray, a: float, b: float) -> np.ndarray:

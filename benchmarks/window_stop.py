@@ -14,7 +14,6 @@ and fitted softness the window takes (default: the config's, without the fit).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -24,6 +23,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from excerpts import run_settings  # noqa: E402  (benchmarks/, the script's folder)
 
 from estimator.config import load_config  # noqa: E402
 from estimator.io.logs import read_log  # noqa: E402
@@ -49,18 +50,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--iterations", type=int)
     args = ap.parse_args(argv)
     config = load_config(args.config)
-    settings = replace(Settings.from_config(config), fit_softness="none")
+    settings = Settings.from_config(config)
     if args.settings_from:
-        s = json.loads(args.settings_from.read_text())
-        fit = s.get("softness_fit") or {}
-        settings = replace(
-            Settings(**s["settings"]),
-            fit_softness="none",
-            softness_eps_scale=fit.get("eps_scale", 1.0),
-            softness_kappa_scale=fit.get("kappa_scale", 1.0),
-            model_softness_std=max(fit.get("eps_scale_sigma", 0), fit.get("kappa_scale_sigma", 0))
-            or s["settings"]["model_softness_std"],
-        )
+        settings = run_settings(args.settings_from)
+    settings = replace(settings, fit_softness="none")
     if args.tolerance is not None:
         settings = replace(settings, tolerance=args.tolerance)
     if args.iterations is not None:
