@@ -9,15 +9,17 @@ the Menagerie models, `--model physics/models/menagerie/<name>.xml`), the batch 
 estimate with the config's defaults, `diagnose` with its defaults; events scored against the
 log's truth (`estimator.diagnose.score`). Beside it the baseline, the generalized-momentum
 observer on the kinematic smoother's estimate with the same isolation and detection
-(`estimator.baselines.momentum_observer`, "MO" columns: pushes only). Pushes of at least
-30 N for at least 0.1 s are counted apart (the target: recall ≥ 95%, isolation ≥ 90%, force
-error ≤ 20% at ≤ 1 false alarm per minute). Prints a table and writes DIR/diagnostics.json.
+(`estimator.baselines.momentum_observer`, "MO" columns: pushes and collisions). Pushes and
+collisions (with an obstacle not in the model, `estimator/simulate/obstacle.py`; their force
+as the simulation measured it) of at least 30 N for at least 0.1 s are counted apart (the
+target: recall ≥ 95%, isolation ≥ 90%, force error ≤ 20% at ≤ 1 false alarm per minute).
+Prints a table and writes DIR/diagnostics.json.
 
 --online: the same log also through the streaming estimator with its online detector
 (`Stream(diagnose=...)`, the node's settings, solving every `ONLINE_STEP_S` of knots): its
-recall, isolation and detection delay (the knot that reported the event − the push's start,
-in log time; the node's own latency comes on top) for the pushes after the detector's
-calibration (`CALIBRATE_S`), and its false alarms per minute after it.
+recall, isolation and detection delay (the knot that reported the event − the true start,
+in log time; the node's own latency comes on top) for the pushes and collisions after the
+detector's calibration (`CALIBRATE_S`), and its false alarms per minute after it.
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ MENAGERIE = {
     "h1": ["--model", "physics/models/menagerie/h1.xml", "--excitation", "0.05"],
 }
 STRONG_N, LONG_S = 30.0, 0.1
+CONTACTS = ("push", "collision")  # the true events an unmodeled contact finds
 ONLINE_STEP_S = 0.05
 
 
@@ -117,8 +120,8 @@ def run(name: str, seed: int, duration: float, work: Path, online: bool = False)
     }
     start = time.perf_counter()
     _, _, observed = observer_diagnosis(config, log.measurements, settings)
-    pushes = [t for t in true_events(log_path) if t["kind"] == "push"]
-    baseline = score(observed.events, pushes, T0_NS, duration)
+    contacts = [t for t in true_events(log_path) if t["kind"] in CONTACTS]
+    baseline = score(observed.events, contacts, T0_NS, duration)
     out["momentum_observer"] = {
         "seconds": time.perf_counter() - start,
         "events": [_matched(m) for m in baseline.matched],
@@ -134,7 +137,7 @@ def run(name: str, seed: int, duration: float, work: Path, online: bool = False)
 
 def streamed(config, log_path: Path, duration: float) -> dict:
     """The log through `Stream(diagnose=...)`: its final events scored against the pushes
-    that start after the calibration."""
+    and collisions that start after the calibration."""
     settings = replace(Settings.from_config(config), max_iterations=2, fit_softness="none")
     stream = Stream(config, settings, lag_s=0.5, diagnose=DetectorSettings())
     step = max(1, round(ONLINE_STEP_S / stream.h))
@@ -148,10 +151,10 @@ def streamed(config, log_path: Path, duration: float) -> dict:
         events += update.events
     final = [e for e in events if not e.ongoing]
     truth = [
-        t for t in true_events(log_path) if t["kind"] == "push" and t["start_s"] >= CALIBRATE_S
+        t for t in true_events(log_path) if t["kind"] in CONTACTS and t["start_s"] >= CALIBRATE_S
     ]
     result = score(final, truth, T0_NS, duration - CALIBRATE_S)
-    faults = [t["start_s"] for t in true_events(log_path) if t["kind"] != "push"]
+    faults = [t["start_s"] for t in true_events(log_path) if t["kind"] not in CONTACTS]
     return {
         "minutes": result.minutes,
         "stream_s": time.perf_counter() - start,
@@ -203,25 +206,21 @@ def summarize(runs: list[dict]) -> list[dict]:
             for kind in ("unmodeled contact", "sensor fault")
         }
         events = [e for r in mine for e in r["events"]]
-        pushes = [e for e in events if e["kind"] == "push"]
-        strong = [
-            e
-            for e in pushes
-            if e["force_n"] >= STRONG_N and e["end_s"] - e["start_s"] >= LONG_S - 1e-9
-        ]
-        for label, group in (("push ≥30 N ≥0.1 s", strong), ("push, all", pushes)):
-            rows.append(_row(name, label, group, alarms["unmodeled contact"], minutes))
-            observed = [
-                e
-                for r in mine
-                for e in r["momentum_observer"]["events"]
-                if label == "push, all"
-                or (e["force_n"] >= STRONG_N and e["end_s"] - e["start_s"] >= LONG_S - 1e-9)
-            ]
-            baseline_alarms = sum(len(r["momentum_observer"]["false_alarms"]) for r in mine)
-            rows[-1]["momentum_observer"] = _row(name, label, observed, baseline_alarms, minutes)
-            if all("online" in r for r in mine):
-                rows[-1]["online"] = _online_row(mine, strong is group)
+        baseline_alarms = sum(len(r["momentum_observer"]["false_alarms"]) for r in mine)
+        for kind in CONTACTS:
+            every = [e for e in events if e["kind"] == kind]
+            for label, group in ((f"{kind} ≥30 N ≥0.1 s", _strong(every)), (f"{kind}, all", every)):
+                rows.append(_row(name, label, group, alarms["unmodeled contact"], minutes))
+                observed = [
+                    e for r in mine for e in r["momentum_observer"]["events"] if e["kind"] == kind
+                ]
+                if group is not every:
+                    observed = _strong(observed)
+                rows[-1]["momentum_observer"] = _row(
+                    name, label, observed, baseline_alarms, minutes
+                )
+                if all("online" in r for r in mine):
+                    rows[-1]["online"] = _online_row(mine, kind, group is not every)
         for kind in ("imu bias step", "encoder offset"):
             group = [e for e in events if e["kind"] == kind]
             rows.append(_row(name, kind, group, alarms["sensor fault"], minutes))
@@ -246,7 +245,7 @@ def _row(name: str, label: str, group: list[dict], alarms: int | None, minutes: 
 
 
 def _baseline_cells(row: dict) -> list[str]:
-    """The momentum observer's recall, isolation, force error and false alarms (push rows)."""
+    """The momentum observer's recall, isolation, force error and false alarms (contact rows)."""
     b = row.get("momentum_observer")
     if b is None:
         return ["—"] * 4
@@ -258,14 +257,17 @@ def _baseline_cells(row: dict) -> list[str]:
     ]
 
 
-def _online_row(runs: list[dict], strong_only: bool) -> dict:
-    events = [e for r in runs for e in r["online"]["events"]]
+def _strong(events: list[dict]) -> list[dict]:
+    """The pushes (collisions) of at least `STRONG_N` for at least `LONG_S`."""
+    return [
+        e for e in events if e["force_n"] >= STRONG_N and e["end_s"] - e["start_s"] >= LONG_S - 1e-9
+    ]
+
+
+def _online_row(runs: list[dict], kind: str, strong_only: bool) -> dict:
+    events = [e for r in runs for e in r["online"]["events"] if e["kind"] == kind]
     if strong_only:
-        events = [
-            e
-            for e in events
-            if e["force_n"] >= STRONG_N and e["end_s"] - e["start_s"] >= LONG_S - 1e-9
-        ]
+        events = _strong(events)
     found = [e for e in events if e["found"]]
     delays = [1e3 * e["delay_s"] for e in found]
     alarms = [a for r in runs for a in r["online"]["false_alarms"]]
@@ -351,7 +353,7 @@ def main() -> None:
         )
     online = [r for r in rows if "online" in r]
     if online:
-        print("\nonline (stream --diagnose), pushes after the calibration:")
+        print("\nonline (stream --diagnose), pushes and collisions after the calibration:")
         print("scenario | events | n | recall | isolation | delay p50 ms | p95 | false/min")
         for r in online:
             o = r["online"]

@@ -33,8 +33,10 @@ from estimator.settings import Settings
 from estimator.simulate import simulate
 from estimator.simulate.disturbances import PUSH_FORCE_N, PUSH_S, fall_time
 from estimator.simulate.model_scenario import model_scenario
+from estimator.simulate.obstacle import Collision
 from estimator.simulate.simulation import T0_NS
 from estimator.stream import Stream
+from physics.dynamics import make_dynamics
 from physics.model import weight
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -110,12 +112,50 @@ def test_disturbances_write_their_truth_and_leave_out_pushes_the_robot_cannot_ta
     kinds = [e["kind"] for e in events]
     assert kinds.count("imu bias step") == 1 and kinds.count("encoder offset") == 1
     pushes = [e for e in events if e["kind"] == "push"]
-    assert len(pushes) == len(result.pushes) >= 1
+    collisions = [e for e in events if e["kind"] == "collision"]
+    drawn = [p for p in result.pushes if isinstance(p, Collision)]
+    assert len(pushes) == len(result.pushes) - len(drawn) >= 1
+    assert len(collisions) == len(drawn) >= 1  # seed 3 brings the obstacle against a hip
+    for c in collisions:
+        assert sum(c["touched"].values()) == pytest.approx(1.0, abs=2e-3)
+        assert c["end_s"] <= 0.7 * 4.0 + 1e-6
     for p in pushes:
         assert PUSH_FORCE_N[0] <= np.linalg.norm(p["force_n"]) <= PUSH_FORCE_N[1]
         assert PUSH_S[0] - 1e-6 <= p["end_s"] - p["start_s"] <= PUSH_S[1] + 1e-6
         assert p["end_s"] <= 0.7 * 4.0 + 1e-6  # pushes first, the sensor faults after
     assert fall_time(result.trajectory) is None  # the robot stays up
+
+
+def test_a_collision_is_the_force_the_obstacle_made_and_what_the_truth_leaves_unexplained(
+    tmp_path,
+):
+    """Go2 standing, an obstacle not in the model pressed on its base for 0.2 s with 50 N
+    along +x: the truth is a collision on the base of about that force (friction of the
+    sliding contact adds a part across), and it is what the ground truth's inverse dynamics,
+    where the obstacle is parked, leave unexplained on the free joint (J_bᵀF's translational
+    rows are F on any body of the tree) — to the newton, and nothing before it."""
+    go2 = model_scenario(ROOT / "physics" / "models" / "menagerie" / "go2.xml")
+    press = Collision("base", 1.0, 0.2, (50.0, 0.0, 0.0))
+    scenario = replace(go2, pushes=lambda rng, duration: (press,), condition="disturbances")
+    result = simulate(scenario, tmp_path / "c.mcap", seed=0, duration_s=1.5)
+    (event,) = [e for e in true_events(tmp_path / "c.mcap") if e["kind"] == "collision"]
+    assert event["body"] == "base" and event["touched"] == {"base": 1.0}
+    assert event["start_s"] == pytest.approx(1.0, abs=0.005)
+    assert event["end_s"] == pytest.approx(1.2, abs=0.005)
+    force = np.array(event["force_n"])
+    assert np.linalg.norm(force) == pytest.approx(50.0, rel=0.1)
+    assert np.degrees(np.arccos(force[0] / np.linalg.norm(force))) < 25.0
+    traj = result.trajectory
+    dyn = make_dynamics(traj.model, "native", softness=result.true_softness)
+
+    def unexplained(k: int) -> np.ndarray:
+        qacc = (traj.qvel[k + 1] - traj.qvel[k]) / traj.h
+        return dyn.inverse(traj.qpos[k], traj.qvel[k], qacc).qfrc_inverse[:3]
+
+    during = range(round(event["start_s"] / traj.h), round(event["end_s"] / traj.h))
+    np.testing.assert_allclose(np.mean([unexplained(k) for k in during], axis=0), force, atol=1.0)
+    before = range(round(0.8 / traj.h), round(0.95 / traj.h))
+    assert max(np.linalg.norm(unexplained(k)) for k in before) < 1.0
 
 
 def _event(kind: str, start_s: float, target: str, score_: float, component: str = "") -> Event:

@@ -1,9 +1,10 @@
 """Detected events against the truth of a simulated log (`disturbances` condition).
 
-A detection matches a true event of its kind (`KIND_OF`) when their intervals, each widened
-by `TOLERANCE_S`, overlap (a sensor fault's true interval: its start). Detections another
+A detection matches a true event of its kind (`KIND_OF`: a push or a collision with an
+obstacle not in the model is an unmodeled contact) when their intervals, each widened by
+`TOLERANCE_S`, overlap (a sensor fault's true interval: its start). Detections another
 explains (`Event.explained_by`) are left out: they are reported as consequences. A true push
-counts as found when a detection of an unmodeled contact matches it; isolated when that
+(collision) counts as found when a detection of an unmodeled contact matches it; isolated when that
 detection names its body (a sensor fault: its stream and component); its force error is
 |‖F̂‖ − ‖F‖| / ‖F‖. A detection that matches no true event is a false alarm.
 """
@@ -25,6 +26,7 @@ TOLERANCE_S = 0.05
 # the simulated event → the kind of detection that finds it
 KIND_OF = {
     "push": "unmodeled contact",
+    "collision": "unmodeled contact",
     "imu bias step": "sensor fault",
     "encoder offset": "sensor fault",
 }
@@ -95,7 +97,7 @@ def score(
     used: set[int] = set()
     for t in truth:
         start = t0_ns + round(t["start_s"] * 1e9)
-        end = t0_ns + round(t["end_s"] * 1e9) if t["kind"] == "push" else start
+        end = t0_ns + round(t["end_s"] * 1e9) if "force_n" in t else start
         kind = KIND_OF[t["kind"]]
         entry = Matched(t | {"start_ns": start, "end_ns": end})
         for i, e in enumerate(events):

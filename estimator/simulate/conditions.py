@@ -26,9 +26,10 @@ dropouts and outliers mixed in). With one:
                  body, moment, geom and parameter (`SignedMismatch`).
     no_commands  nominal, but the commands are not logged: no command topic in the log and
                  no command stream in the config.
-    disturbances nominal + unlogged pushes on random bodies, an IMU bias step and an encoder
-                 offset jump, their truth in the log (`disturbances`: what the contact
-                 diagnostics must find).
+    disturbances nominal + unlogged pushes on random bodies (half of them, where the body has
+                 a collision geom, collisions with an obstacle not in the model), an IMU bias
+                 step and an encoder offset jump, their truth in the log (`disturbances`: what
+                 the contact diagnostics must find).
 
 Under every condition but disturbances the seed draws the same model mismatch (up to
 `mismatch`'s signed factors), controller and pushes, so nominal, occlusion, outliers and
@@ -47,6 +48,7 @@ from estimator.io.mcap_writer import Message
 from estimator.simulate import disturbances
 from estimator.simulate.errors import SimulationError
 from estimator.simulate.mismatch import SignedMismatch
+from estimator.simulate.obstacle import touchable
 from estimator.simulate.scenarios import Scenario
 from estimator.simulate.sensors import (
     NS,
@@ -71,8 +73,8 @@ CONDITIONS: Mapping[str, str] = {
     "no_commands": "nominal without the command topic (no command stream in the config)",
     "no_mocap": "nominal without motion capture (no mocap stream in the log or the config): "
     "IMU, encoders and commands, as a legged robot in the field",
-    "disturbances": "nominal + pushes on random bodies (20-100 N, 0.05-0.3 s), an IMU bias "
-    "step, an encoder offset jump",
+    "disturbances": "nominal + pushes on random bodies (20-100 N, 0.05-0.3 s), half of them "
+    "collisions with an obstacle not in the model, an IMU bias step, an encoder offset jump",
 }
 
 OUTLIER_PROBABILITY = 0.02  # per frame and body (or marker), the `outliers` condition
@@ -190,13 +192,14 @@ def with_condition(scenario: Scenario, condition: str) -> Scenario:
             )
         sensors = tuple(s for s in sensors if not isinstance(s, MocapPoses | MocapMarkers))
     elif condition == "disturbances":
-        bodies = disturbances.push_bodies(load_model(scenario.model))
+        model = load_model(scenario.model)
+        bodies = disturbances.push_bodies(model)
         faulty = _first(sensors, Imu, disturbances.ImuBiasStep)
         faulty = _first(faulty, Encoders, disturbances.EncoderJump)
         return replace(
             scenario,
             sensors=faulty,
-            pushes=disturbances.random_body_pushes(bodies),
+            pushes=disturbances.random_body_pushes(bodies, touchable(model, bodies)),
             condition=condition,
         )
     return replace(scenario, sensors=sensors, mismatch=mismatch, condition=condition)

@@ -8,6 +8,11 @@ On top of `nominal` (the scenario's own pushes replaced):
                   with mass drawn uniformly (`push_bodies`), 20–100 N for 0.05–0.3 s
                   (uniform), at the body's centre of mass, in a direction uniform in azimuth
                   and within ±30° of horizontal — never logged.
+    collisions    each push on a body with a collision geom is, with probability ½, instead
+                  delivered by an obstacle that is not in the model (`obstacle.py`): a
+                  sphere that comes along the push's direction, touches the body's surface
+                  and presses with about the push's force for its duration — a contact
+                  force at a point of the surface, friction included.
     IMU bias step the first IMU's gyro (or, with probability ½, accelerometer) bias on one axis
                   steps by ±0.05 rad/s (±0.5 m/s²) at a uniform time in 70–80% of the log and
                   stays.
@@ -22,8 +27,10 @@ The sensor faults come after the pushes: an estimate that takes in a faulty sens
 from then on, and the pushes are to be found on an estimate as good as the sensors allow.
 
 The truth is the metadata record `physfuse.condition`, key `events`: a JSON list of
-{"kind": "push" | "imu bias step" | "encoder offset", "start_s", "end_s", and "body",
-"force_n" (world frame) for a push; "stream", "component", "step" for a sensor fault}, times
+{"kind": "push" | "collision" | "imu bias step" | "encoder offset", "start_s", "end_s", and
+"body", "force_n" (world frame) for a push or a collision (as the simulation measured it:
+the body that took most of it, its first and last touching step, its mean force on the
+robot); "stream", "component", "step" for a sensor fault}, times
 in seconds of simulated time from the start of the log (the log's stamps less their clock
 offsets). The draws come after the scenario's own (controller, the sensors' noise), so a
 disturbed log and its nominal twin differ only by them and by what they change.
@@ -31,7 +38,7 @@ disturbed log and its nominal twin differ only by them and by what they change.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,12 +47,14 @@ import numpy as np
 
 from estimator.simulate.controllers import Push
 from estimator.simulate.errors import SimulationError
+from estimator.simulate.obstacle import Collision
 from estimator.simulate.sensors import NS, Encoders, Imu, SensorOutput, Trajectory, Wrapping
 
 PUSH_FORCE_N = (20.0, 100.0)
 PUSH_S = (0.05, 0.3)
 PUSH_EVERY_S = (1.0, 2.0)
 PUSH_ELEVATION_RAD = np.deg2rad(30.0)
+COLLISION_PROBABILITY = 0.5  # of a disturbance on a body the obstacle can touch
 MARGIN_S = 0.5
 FALLEN = 0.6  # of the root's starting height
 PUSHES_UNTIL = 0.7  # of the log; the sensor faults come after
@@ -70,13 +79,16 @@ def push_bodies(model: mujoco.MjModel) -> list[str]:
 
 
 def random_body_pushes(
-    bodies: list[str],
+    bodies: list[str], touchable: Sequence[str] = ()
 ) -> Callable[[np.random.Generator, float], tuple[Push, ...]]:
-    """A push factory (rng, duration) → pushes, as the module docstring says."""
+    """A push factory (rng, duration) → pushes, as the module docstring says; on a body in
+    `touchable`, each is with probability `COLLISION_PROBABILITY` a `Collision` instead (drawn
+    from a generator spawned off rng: the pushes' own draws are those without collisions)."""
     if not bodies:
         raise SimulationError("condition disturbances: the model has no moving body to push")
 
     def pushes(rng: np.random.Generator, duration_s: float) -> tuple[Push, ...]:
+        (kinds,) = rng.spawn(1)
         out: list[Push] = []
         t = MARGIN_S
         while True:
@@ -90,7 +102,9 @@ def random_body_pushes(
             horizontal = np.cos(elevation) * np.array([np.cos(azimuth), np.sin(azimuth)])
             direction = np.r_[horizontal, np.sin(elevation)]
             fx, fy, fz = (float(f) for f in magnitude * direction)
-            out.append(Push(body, round(t, 6), round(length, 6), (fx, fy, fz)))
+            collides = kinds.uniform() < COLLISION_PROBABILITY and body in touchable
+            kind = Collision if collides else Push
+            out.append(kind(body, round(t, 6), round(length, 6), (fx, fy, fz)))
             t += length + float(rng.uniform(*PUSH_EVERY_S))
 
     return pushes
@@ -186,7 +200,7 @@ def without_culprit(pushes: tuple[Push, ...], fall_s: float) -> tuple[Push, ...]
     return pushes[:culprit] + pushes[culprit + 1 :]
 
 
-def push_events(pushes: tuple[Push, ...]) -> list[dict[str, Any]]:
+def push_events(pushes: Sequence[Push]) -> list[dict[str, Any]]:
     return [
         {
             "kind": "push",

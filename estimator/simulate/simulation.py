@@ -55,6 +55,7 @@ from estimator.simulate.controllers import Push, apply_pushes
 from estimator.simulate.disturbances import push_events
 from estimator.simulate.errors import SimulationError
 from estimator.simulate.mismatch import Mismatch, MismatchRecord
+from estimator.simulate.obstacle import Collision, Obstacle, add_obstacle
 from estimator.simulate.scenarios import Controller, Scenario, get_scenario
 from estimator.simulate.sensors import NS, Imu, Trajectory, site_ids
 from physics.dynamics import Dynamics, make_dynamics
@@ -155,7 +156,7 @@ def simulate(
     controller = scenario.controller(load_model(scenario.model), rng, duration)
     pushes = scenario.pushes(rng, duration)
 
-    trajectory = _run(scenario, dyn.model, controller, pushes, duration, progress)
+    trajectory, collisions = _run(scenario, dyn.model, controller, pushes, duration, progress)
     while scenario.condition == "disturbances" and (
         (fall := disturbances.fall_time(trajectory)) is not None and pushes
     ):  # a push the robot cannot withstand is left out and the run repeated
@@ -163,7 +164,7 @@ def simulate(
         rng = copy.deepcopy(start)
         controller = scenario.controller(load_model(scenario.model), rng, duration)
         scenario.pushes(rng, duration)
-        trajectory = _run(scenario, dyn.model, controller, pushes, duration, progress)
+        trajectory, collisions = _run(scenario, dyn.model, controller, pushes, duration, progress)
     sensed: list[EncodedMessage] = []  # encoded: an hour of a robot's messages fits
     truths: dict[str, dict[str, Any]] = {}
     for sensor in scenario.sensors:
@@ -176,7 +177,9 @@ def simulate(
     sensed.sort(key=lambda m: m.log_time_ns)  # stable: a tie keeps the order made
     metadata = _metadata(scenario, seed, duration, trajectory, record, true_softness, pushes)
     if scenario.condition is not None:
-        metadata["physfuse.condition"] = _condition_metadata(scenario.condition, truths, pushes)
+        metadata["physfuse.condition"] = _condition_metadata(
+            scenario.condition, truths, pushes, collisions
+        )
     try:
         writer = Ros2Writer(out, compression=compression)
     except OSError as err:
@@ -212,8 +215,9 @@ def _run(
     pushes: tuple[Push, ...],
     duration_s: float,
     progress: bool,
-) -> Trajectory:
-    """Step the true model for `duration_s` and record its trajectory."""
+) -> tuple[Trajectory, list[dict[str, Any]]]:
+    """Step the true model for `duration_s`; its trajectory and the collisions' truth (the
+    pushes that are `Collision`s, as the obstacle delivered them: `obstacle.Obstacle.events`)."""
     h = float(m.opt.timestep)
     steps = max(1, round(duration_s / h))
     d = mujoco.MjData(m)
@@ -232,6 +236,9 @@ def _run(
     qfrc_actuator = np.zeros((steps, m.nv))
     body_xpos = np.zeros((steps + 1, m.nbody, 3))
     body_xquat = np.zeros((steps + 1, m.nbody, 4))
+    collisions = [p for p in pushes if isinstance(p, Collision)]
+    forces = [p for p in pushes if not isinstance(p, Collision)]
+    obstacle = Obstacle(m, collisions, steps) if collisions else None
     bar = tqdm(total=steps, desc=f"simulate {scenario.name}", unit="step", disable=not progress)
     with bar:
         for k in range(steps + 1):
@@ -247,14 +254,18 @@ def _run(
             if k == steps:
                 break
             d.ctrl[:] = controller(k * h, d)
-            apply_pushes(m, d, pushes, k * h)
+            apply_pushes(m, d, forces, k * h)
+            if obstacle:
+                obstacle.move(d, k * h)  # where it is from the next step on
             mujoco.mj_step2(m, d)  # forces, constraint solve, acceleration sensors, integrate
+            if obstacle:
+                obstacle.measure(d, k)
             ctrl[k], qfrc_actuator[k] = d.ctrl, d.qfrc_actuator
             sensordata_acc[k] = d.sensordata
             bar.update()
     rot = Rotation.from_matrix(site_xmat.reshape(-1, 3, 3))
     site_xquat = rot.as_quat(scalar_first=True).reshape(steps + 1, m.nsite, 4)
-    return Trajectory(
+    trajectory = Trajectory(
         model=m,
         t0_ns=T0_NS,
         h=h,
@@ -269,11 +280,15 @@ def _run(
         body_xpos=body_xpos,
         body_xquat=body_xquat,
     )
+    names = [m.body(b).name for b in range(m.nbody)]
+    return trajectory, obstacle.events(h, names) if obstacle else []
 
 
 def _simulation_model(scenario: Scenario) -> mujoco.MjModel:
     """The scenario's model, with a gyro and an accelerometer added at each IMU site that
-    lacks them (the IMU reads them; sensors change no dynamics)."""
+    lacks them (the IMU reads them; sensors change no dynamics) and, under `disturbances`,
+    the obstacle its collisions bring against the robot (`obstacle.py`; parked, it changes
+    no dynamics either)."""
     model = load_model(scenario.model)
     imus = [s for s in map(_wrapped, scenario.sensors) if isinstance(s, Imu)]
     for imu in imus:
@@ -285,7 +300,8 @@ def _simulation_model(scenario: Scenario) -> mujoco.MjModel:
         for kind in kinds
         if not _has_site_sensor(model, imu.site, kind)
     ]
-    if not missing:
+    collides = scenario.condition == "disturbances"
+    if not (missing or collides):
         return model
     spec = mujoco.MjSpec.from_file(str(model_path(scenario.model)))
     for site, kind in missing:
@@ -294,10 +310,14 @@ def _simulation_model(scenario: Scenario) -> mujoco.MjModel:
         sensor.type = kind
         sensor.objtype = mujoco.mjtObj.mjOBJ_SITE
         sensor.objname = site
+    if collides:
+        add_obstacle(spec, model)
     try:
         return spec.compile()
     except ValueError as err:
-        raise SimulationError(f"{scenario.model}: cannot add the IMU sensors: {err}") from err
+        raise SimulationError(
+            f"{scenario.model}: cannot add the IMU sensors or the obstacle: {err}"
+        ) from err
 
 
 def _wrapped(sensor: Any) -> Any:
@@ -397,13 +417,16 @@ def _metadata(
 
 
 def _condition_metadata(
-    condition: str, truths: dict[str, dict[str, Any]], pushes: tuple[Push, ...]
+    condition: str,
+    truths: dict[str, dict[str, Any]],
+    pushes: tuple[Push, ...],
+    collisions: list[dict[str, Any]],
 ) -> dict[str, str]:
     """The `physfuse.condition` record: the condition, and the occlusions it drew (if any);
-    under `disturbances`, its `events` (disturbances.py)."""
+    under `disturbances`, its `events` (disturbances.py; collisions as measured)."""
     record = {"name": condition, "description": CONDITIONS[condition]}
     if condition == "disturbances":
-        events = push_events(pushes)
+        events = push_events([p for p in pushes if not isinstance(p, Collision)]) + collisions
         events += [e for truth in truths.values() for e in truth.get("events", [])]
         record["events"] = json.dumps(sorted(events, key=lambda e: e["start_s"]))
     occlusions = {
