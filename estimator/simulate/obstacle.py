@@ -4,13 +4,15 @@ The simulated world gets one more body, `OBSTACLE`: a mocap sphere of radius `RA
 far below the floor. A `Collision` brings it against a robot body: at the collision's start
 it is placed where, coming along the collision's direction on the line through the body's
 centre of mass, it first touches the robot (that body, or whatever is in the way), then
-pressed along that direction with its contact force held near the drawn magnitude (an
-admittance law: the sphere advances at the speed along the path of the centre of mass of the
-body it touches + `GAIN` (F* − Σ_b ‖F_b‖) m/s, at most `SPEED`; a padded sphere, its
-contact's time constant `SOLREF`), and parked again at the end. The force the robot feels
-is the contact's (normal and friction, at the touching point: a force and a moment about the
-centre of mass), and how long it lasts is how long the sphere touches — the truth written to
-the log is what the simulation measured (`Obstacle.events`), not the draw.
+pressed along that direction with its contact force Σ_b ‖F_b‖ held near the drawn magnitude
+F* (each step the sphere follows the centre of mass of the body it touches along the path
+and moves in by `RELAX` (F* − Σ_b ‖F_b‖) / K̂, at most `STEP`, K̂ the contact's stiffness
+from the last step's ΔF/Δx: stable from a free hand to a leg on the ground, at 1 to 10 ms
+steps; a padded sphere, its contact's time constant `SOLREF`), and parked again at the end.
+The force the robot feels is the contact's (normal and friction, at the touching point: a
+force and a moment about the centre of mass), and how long it lasts is how long the sphere
+touches — the truth written to the log is what the simulation measured (`Obstacle.events`),
+not the draw.
 
 The obstacle touches only the robot (it is welded to the world, as the floor is, and MuJoCo
 does not collide bodies welded together) and is invisible to everything the log holds: it has
@@ -32,10 +34,11 @@ from estimator.simulate.controllers import Push
 OBSTACLE = "physfuse/obstacle"
 RADIUS = 0.04  # m
 PARKED = (0.0, 0.0, -100.0)  # m, world
-GAIN = 2e-2  # m/s per N of force short of the target
+STIFFNESS = (2e4, 1e3, 1e7)  # N/m: the contact's ΔF/Δx at first, its least and most
+RELAX = 0.5  # of the step a secant (Newton) iteration on the force would take
+STEP = 1e-3  # m, the most the sphere moves into (out of) the robot in a step
 FRICTION = 0.3  # sliding friction of the obstacle's contacts (it takes precedence)
 SOLREF = (0.05, 1.0)  # a padded obstacle: time constant [s], damping ratio
-SPEED = 2.0  # m/s, the most the sphere moves
 TOUCHING_N = 1.0  # a contact force above this is a touch
 REACH = 2.0  # m: the sphere comes from this far along its path
 
@@ -99,6 +102,9 @@ class Obstacle:
         self.k = 0
         self.pressed = 0.0  # the last step's force on the robot, Σ over bodies of ‖F_b‖ [N]
         self.touching = 0  # the body it pressed on most in the last step (0: none)
+        self.before = 0.0  # the force of the step before [N]
+        self.pushed = 0.0  # how far the last step moved the sphere into the robot [m]
+        self.stiffness = STIFFNESS[0]  # the contact's ΔF/Δx, estimated [N/m]
 
     def move(self, d: mujoco.MjData, t: float) -> None:
         now = next((c for c in self.collisions if c.active(t)), None)
@@ -106,15 +112,22 @@ class Obstacle:
             d.mocap_pos[self.mocap] = PARKED
         elif now is not self.active:
             d.mocap_pos[self.mocap] = self._touching(d, now)
+            self.stiffness, self.pushed = STIFFNESS[0], 0.0
         else:
             path = _unit(now.force)
-            target = float(np.linalg.norm(now.force))
             b = self.touching or mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, now.body)
             velocity = np.zeros(6)
             mujoco.mj_objectVelocity(self.model, d, mujoco.mjtObj.mjOBJ_BODY, b, velocity, 0)
             follow = float(velocity[3:] @ path)  # the body's centre of mass, along the path
-            speed = np.clip(follow + GAIN * (target - self.pressed), -SPEED, SPEED)
-            d.mocap_pos[self.mocap] += path * speed * self.model.opt.timestep
+            if self.pushed and min(self.pressed, self.before) > TOUCHING_N:
+                secant = (self.pressed - self.before) / self.pushed
+                if secant > 0.0:  # ΔF/Δx of the last step, smoothed in log scale
+                    stiffness = np.sqrt(self.stiffness * secant)
+                    self.stiffness = float(np.clip(stiffness, *STIFFNESS[1:]))
+            error = float(np.linalg.norm(now.force)) - self.pressed
+            self.pushed = float(np.clip(RELAX * error / self.stiffness, -STEP, STEP))
+            self.before = self.pressed
+            d.mocap_pos[self.mocap] += path * (follow * self.model.opt.timestep + self.pushed)
         self.active = now
 
     def measure(self, d: mujoco.MjData, k: int) -> None:
