@@ -193,6 +193,10 @@ def _matched(m: Matched) -> dict:
     }
     if m.detection is not None:
         out["detected"] = {"body": m.detection.target, "force_n": m.detection.magnitude}
+        if "point_m" in t:  # a collision: where the obstacle touched, against the point found
+            point = m.detection.point  # None: put at a centre of mass
+            error = None if point is None else np.linalg.norm(np.subtract(point, t["point_m"]))
+            out["point_error_m"] = None if error is None else float(error)
     return out
 
 
@@ -231,6 +235,7 @@ def _row(name: str, label: str, group: list[dict], alarms: int | None, minutes: 
     found = [e for e in group if e["found"]]
     errors = [e["force_error"] for e in found if e["force_error"] is not None]
     delays = [e["delay_s"] for e in found]
+    points = [e["point_error_m"] for e in found if e.get("point_error_m") is not None]
     return {
         "scenario": name,
         "events": label,
@@ -241,6 +246,9 @@ def _row(name: str, label: str, group: list[dict], alarms: int | None, minutes: 
         "force_error_p90": float(np.quantile(errors, 0.9)) if errors else None,
         "delay_p50_ms": 1e3 * float(np.median(delays)) if delays else None,
         "false_alarms_per_min": alarms / minutes if alarms is not None and minutes else None,
+        # collisions: how far the contact point found is from where the obstacle touched
+        "point_error_p50_m": float(np.median(points)) if points else None,
+        "points_found": len(points),
     }
 
 
@@ -283,6 +291,12 @@ def _online_row(runs: list[dict], kind: str, strong_only: bool) -> dict:
             sum(a["after_sensor_fault"] for a in alarms) / minutes if minutes else None
         ),
     }
+
+
+def _point_cell(row: dict) -> str:
+    if row["point_error_p50_m"] is None:
+        return "—"
+    return f"{100 * row['point_error_p50_m']:.1f} ({row['points_found']})"
 
 
 def _cell(v: object, fmt: str) -> str:
@@ -328,6 +342,7 @@ def main() -> None:
         "p90",
         "delay p50 ms",
         "false/min",
+        "point err cm p50 (n)",
         "MO recall",
         "MO isolation",
         "MO ‖F‖ err p50",
@@ -347,6 +362,7 @@ def main() -> None:
                     _cell(r["force_error_p90"], ".0%"),
                     _cell(r["delay_p50_ms"], ".0f"),
                     _cell(r["false_alarms_per_min"], ".2f"),
+                    _point_cell(r),
                     *_baseline_cells(r),
                 ]
             )

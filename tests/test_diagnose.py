@@ -34,7 +34,7 @@ from estimator.simulate import simulate
 from estimator.simulate.disturbances import PUSH_FORCE_N, PUSH_S, fall_time
 from estimator.simulate.model_scenario import model_scenario
 from estimator.simulate.obstacle import Collision
-from estimator.simulate.simulation import T0_NS
+from estimator.simulate.simulation import T0_NS, scenario_config
 from estimator.stream import Stream
 from physics.dynamics import make_dynamics
 from physics.model import weight
@@ -73,8 +73,9 @@ def test_a_push_on_the_go2_base_is_found_on_its_body_and_sized_within_20_percent
 
 
 def _the_push_is_drawn(config, log, est, diagnosis, e, path) -> None:
-    """The event on the timeline at its start; its force an arrow from the base's centre of
-    mass over its interval's knots and no other; the statistic over its threshold per knot."""
+    """The event on the timeline at its start; its force an arrow onto its contact point (or
+    from the base's centre of mass) over its interval's knots and no other; the statistic
+    over its threshold per knot."""
     from test_visualize import read_recording
 
     model = config.load_model()
@@ -87,11 +88,19 @@ def _the_push_is_drawn(config, log, est, diagnosis, e, path) -> None:
     drawn = [k for k, v in enumerate(arrows.rows["Arrows3D:vectors"]) if v]
     inside = np.flatnonzero((est.t_ns >= e.start_ns) & (est.t_ns <= e.end_ns))
     assert drawn == inside.tolist()
-    d = mujoco.MjData(model)
-    d.qpos[:] = est.qpos[inside[0]]
-    mujoco.mj_kinematics(model, d)
-    np.testing.assert_allclose(arrows.rows["Arrows3D:origins"][inside[0]], [d.xipos[1]], atol=1e-6)
     vector = np.array(arrows.rows["Arrows3D:vectors"][inside[0]][0])
+    if e.point is None:  # from the base's centre of mass
+        d = mujoco.MjData(model)
+        d.qpos[:] = est.qpos[inside[0]]
+        mujoco.mj_kinematics(model, d)
+        origin = arrows.rows["Arrows3D:origins"][inside[0]]
+        np.testing.assert_allclose(origin, [d.xipos[1]], atol=1e-6)
+    else:  # onto its contact point, at the event's middle knot where it was fitted
+        middle = inside[len(inside) // 2]
+        tip = np.add(
+            arrows.rows["Arrows3D:origins"][middle], arrows.rows["Arrows3D:vectors"][middle]
+        )
+        np.testing.assert_allclose(tip, [e.point], atol=1e-5)
     np.testing.assert_allclose(vector * weight(model), e.force, rtol=1e-5)  # 1 m per weight
     det = diagnosis.detection
     statistic = entities["/plots/diagnostics/base"]
@@ -156,6 +165,43 @@ def test_a_collision_is_the_force_the_obstacle_made_and_what_the_truth_leaves_un
     np.testing.assert_allclose(np.mean([unexplained(k) for k in during], axis=0), force, atol=1.0)
     before = range(round(0.8 / traj.h), round(0.95 / traj.h))
     assert max(np.linalg.norm(unexplained(k)) for k in before) < 1.0
+
+
+def test_a_collision_is_located_on_the_surface_where_the_obstacle_touched(tmp_path):
+    """Go2 standing, an obstacle not in the model pressed on the right side of its base for
+    0.2 s (about 50 N): estimated and diagnosed with the defaults, the one unmodeled contact
+    is on the base, at a point of its surface within 5 cm of where the obstacle touched."""
+    go2 = model_scenario(ROOT / "physics" / "models" / "menagerie" / "go2.xml")
+    press = Collision("base", 1.0, 0.2, (0.0, 50.0, 0.0))
+    scenario = replace(go2, pushes=lambda rng, duration: (press,), condition="disturbances")
+    log, config_path = tmp_path / "c.mcap", tmp_path / "c.toml"
+    simulate(scenario, log, seed=0, duration_s=2.5)
+    config_path.write_text(scenario_config(scenario, config_path))
+    config = load_config(config_path)
+    measurements = read_log(log, config).measurements
+    settings = Settings.from_config(config)
+    est, _ = estimate(config, measurements, settings)
+    diagnosis = diagnose(config, measurements, est, settings)
+    (truth,) = [e for e in true_events(log) if e["kind"] == "collision"]
+    (e,) = [e for e in diagnosis.events if e.kind == "unmodeled contact"]
+    assert e.target == truth["body"] == "base"
+    assert e.point is not None and np.linalg.norm(e.point - truth["point_m"]) < 0.05
+    assert abs(e.magnitude - np.linalg.norm(truth["force_n"])) < 0.3 * e.magnitude
+    # Rerun draws the force onto that point, the point moving with the base
+    from test_visualize import read_recording
+
+    drawn = write_recording(
+        est,
+        config.load_model(),
+        read_log(log, config),
+        path=tmp_path / "d.rrd",
+        diagnosis=diagnosis,
+    )
+    arrows = read_recording(drawn)["/world/diagnostics/base"]
+    inside = np.flatnonzero((est.t_ns >= e.start_ns) & (est.t_ns <= e.end_ns))
+    middle = inside[len(inside) // 2]
+    tip = np.add(arrows.rows["Arrows3D:origins"][middle], arrows.rows["Arrows3D:vectors"][middle])
+    np.testing.assert_allclose(tip, [e.point], atol=1e-5)
 
 
 def _event(kind: str, start_s: float, target: str, score_: float, component: str = "") -> Event:

@@ -32,6 +32,7 @@ import numpy as np
 
 from estimator.batch import estimate
 from estimator.config import Config
+from estimator.diagnose.contact_point import contact_points
 from estimator.diagnose.detect import Detection, DetectorSettings, detect
 from estimator.diagnose.unmodeled import UnmodeledForces, unmodeled_forces
 from estimator.estimate import Estimate
@@ -86,7 +87,8 @@ def observer_diagnosis(
     """Unmodeled contacts from the momentum observer: the kinematic smoother's estimate of the
     log, its r (`momentum_residual`, the commands through the actuators as τ), then the same
     isolation and detection as `estimator.diagnose` (`unmodeled_forces` with r in place of
-    the physics residual and the ground's reaction of unknown size, `detect`)."""
+    the physics residual and the ground's reaction of unknown size, `detect`,
+    `contact_points`)."""
     kinematic = replace(settings, method="kinematic")
     est, _ = estimate(config, measurements, kinematic)
     compiled = model_with_sensors(config)
@@ -96,4 +98,8 @@ def observer_diagnosis(
     forces = unmodeled_forces(
         model, est, problem.known_sigma, UNKNOWN_CONTACT * weight(model), residual=r
     )
-    return est, forces, detect(forces, detector)
+    detection = detect(forces, detector)
+    located = contact_points(
+        model, est, problem.known_sigma, UNKNOWN_CONTACT * weight(model), detection, residual=r
+    )
+    return est, forces, replace(detection, events=located)

@@ -55,8 +55,8 @@ class DetectorSettings:
 class Event:
     """One detected event. Times in ns (log clock).
 
-    kind: "unmodeled contact" (target: the body; force: world frame [N], at its centre of
-    mass) or "sensor fault" (target: the stream; component: the residual row, "gyro z",
+    kind: "unmodeled contact" (target: the body; force: world frame [N], at `point` or its
+    centre of mass) or "sensor fault" (target: the stream; component: the residual row, "gyro z",
     "FR_hip_joint position"; force: the size of the step in the row's units, whitened σ).
     score: the peak statistic over its threshold (> 1).
     """
@@ -73,6 +73,8 @@ class Event:
     candidates: dict[str, float] = field(default_factory=dict)  # body → likelihood ratio
     explained_by: str = ""  # a sensor fault that explains this event ("": none)
     ongoing: bool = False  # online: the first report, its alarm still on (the final follows)
+    point: np.ndarray | None = None  # (3,) where the force acts, world [m] (None: at the
+    # body's centre of mass; `contact_point`)
 
     @property
     def magnitude(self) -> float:

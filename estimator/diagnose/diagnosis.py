@@ -7,6 +7,7 @@ from dataclasses import dataclass, replace
 
 from estimator.config import Config
 from estimator.diagnose.contact_model import contact_model_errors
+from estimator.diagnose.contact_point import contact_points
 from estimator.diagnose.detect import Detection, DetectorSettings, Event, detect
 from estimator.diagnose.sensor_faults import ONE_FAULT_S, sensor_faults
 from estimator.diagnose.unmodeled import UnmodeledForces, unmodeled_forces
@@ -20,7 +21,8 @@ from physics.model import weight
 @dataclass(frozen=True)
 class Diagnosis:
     """forces, detection: the unmodeled-contact stages; events: every event in time order —
-    the unmodeled contacts, those a modeled contact's normal force explains as its "model
+    the unmodeled contacts (on the body and point that best explain them, `contact_point`),
+    those a modeled contact's normal force explains as its "model
     error" (`contact_model`), the sensor faults —, the contacts a sensor fault explains
     marked `explained_by` it."""
 
@@ -45,7 +47,10 @@ def diagnose(
     sigma_f = settings.contact_force_std * weight(model)
     forces = unmodeled_forces(model, est, problem.known_sigma, sigma_f)
     detection = detect(forces, detector)
-    contacts = contact_model_errors(model, est, problem.known_sigma, sigma_f, detection)
+    # the simpler explanation first: a modeled contact's normal force; the rest located
+    errors = contact_model_errors(model, est, problem.known_sigma, sigma_f, detection)
+    with_errors = replace(detection, events=errors)
+    contacts = contact_points(model, est, problem.known_sigma, sigma_f, with_errors)
     faults = sensor_faults(est, detector)
     return Diagnosis(forces, detection, explained(contacts, faults))
 

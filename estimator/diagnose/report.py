@@ -49,6 +49,8 @@ def event_dict(e: Event, t0_ns: int) -> dict[str, Any]:
         out["magnitude_n"] = e.magnitude
         out["magnitude_std_n"] = e.magnitude_std
         out["candidates"] = dict(sorted(e.candidates.items(), key=lambda kv: -kv[1])[:3])
+        if e.point is not None:
+            out["contact_point_m"] = e.point.tolist()
     elif e.kind == MODEL_ERROR:
         out["component"] = e.component
         out["normal_force_error_n"] = float(e.force[0])

@@ -29,8 +29,9 @@ of the log, and the recording's start time is that instant in absolute time):
 With a diagnosis (`physfuse diagnose`, estimator/diagnose):
 
     diagnostics/events                      TextLog at each event's start (report.message)
-    world/diagnostics/<body>                Arrows3D from the body's centre of mass along an
-                                            unmodeled contact's fitted force, its interval's
+    world/diagnostics/<body>                Arrows3D along an unmodeled contact's fitted
+                                            force, onto its contact point (fixed in the body)
+                                            or from the body's centre of mass, its interval's
                                             knots (the contacts' scale)
     plots/diagnostics/<body>                the detector's statistic over its threshold per
                                             knot (> 1: alarm), plots/diagnostics/threshold at 1
@@ -560,8 +561,13 @@ def _log_diagnosis(
             d.qpos[:] = estimate.qpos[k]
             mujoco.mj_kinematics(model, d)
             counts[k] = 1
-            origins.append(d.xipos[b].copy())
-            vectors.append(on[0].force * scale)
+            vector = on[0].force * scale
+            if on[0].point is None:  # from the centre of mass
+                origins.append(d.xipos[b].copy())
+            else:  # onto the contact point, fixed in the body
+                point = _in_body(model, estimate, on[0], b)
+                origins.append(d.xpos[b] + d.xmat[b].reshape(3, 3) @ point - vector)
+            vectors.append(vector)
             labels.append(f"{on[0].magnitude:.1f} ± {on[0].magnitude_std:.1f} N unmodeled")
         rec.send_columns(
             f"world/diagnostics/{_body_name(model, b, escape=True)}",
@@ -853,6 +859,17 @@ def _body_poses(model: mujoco.MjModel, qpos: np.ndarray) -> tuple[np.ndarray, np
 
 
 # -- names, times, conventions ----------------------------------------------------------------
+def _in_body(model: mujoco.MjModel, estimate: Estimate, e: Event, b: int) -> np.ndarray:
+    """An event's contact point (world, at its middle knot: `contact_point`) in body b's
+    frame."""
+    knots = np.flatnonzero((estimate.t_ns >= e.start_ns) & (estimate.t_ns <= e.end_ns))
+    d = mujoco.MjData(model)
+    d.qpos[:] = estimate.qpos[knots[len(knots) // 2]]
+    mujoco.mj_kinematics(model, d)
+    assert e.point is not None
+    return d.xmat[b].reshape(3, 3).T @ (e.point - d.xpos[b])
+
+
 def _body_name(model: mujoco.MjModel, b: int, *, escape: bool = False) -> str:
     name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) or f"body{b}"
     return _part(name) if escape else name

@@ -97,7 +97,8 @@ class Obstacle:
         body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, OBSTACLE)
         self.mocap = int(model.body_mocapid[body])
         self.geom = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, OBSTACLE)
-        self.touches: list[tuple[int, int, np.ndarray]] = []  # (step, body, force on it [N])
+        # (step, body, force on it [N], ‖force‖-weighted mean contact position [m]), world
+        self.touches: list[tuple[int, int, np.ndarray, np.ndarray]] = []
         self.active: Collision | None = None
         self.k = 0
         self.pressed = 0.0  # the last step's force on the robot, Σ over bodies of ‖F_b‖ [N]
@@ -132,7 +133,7 @@ class Obstacle:
 
     def measure(self, d: mujoco.MjData, k: int) -> None:
         f6 = np.zeros(6)
-        by_body: dict[int, np.ndarray] = {}
+        by_body: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # body → (force, Σ‖f‖ pos)
         for i in range(d.ncon):
             c = d.contact[i]
             if self.geom not in (c.geom1, c.geom2):
@@ -143,10 +144,13 @@ class Obstacle:
                 (c.geom2, on_geom2) if c.geom1 == self.geom else (c.geom1, -on_geom2)
             )
             b = int(self.model.geom_bodyid[robot_geom])
-            by_body[b] = by_body.get(b, np.zeros(3)) + force
-        self.touches += [(k, b, f) for b, f in by_body.items()]
-        self.pressed = sum(float(np.linalg.norm(f)) for f in by_body.values())
-        self.touching = max(by_body, key=lambda b: float(np.linalg.norm(by_body[b])), default=0)
+            total, moment = by_body.get(b, (np.zeros(3), np.zeros(3)))
+            by_body[b] = (total + force, moment + np.linalg.norm(force) * c.pos)
+        for b, (force, moment) in by_body.items():
+            point = moment / max(float(np.linalg.norm(force)), 1e-12)
+            self.touches.append((k, b, force, point))
+        self.pressed = sum(float(np.linalg.norm(f)) for f, _ in by_body.values())
+        self.touching = max(by_body, key=lambda b: float(np.linalg.norm(by_body[b][0])), default=0)
 
     def _touching(self, d: mujoco.MjData, c: Collision) -> np.ndarray:
         """Where the sphere's centre first touches the robot coming along c.force on the
@@ -186,12 +190,14 @@ class Obstacle:
     def events(self, h: float, names: Sequence[str]) -> list[dict[str, Any]]:
         """One truth record per collision that touched the robot: kind "collision", the
         body that took most of its impulse and the mean force on it over the steps it was
-        touched (world frame [N]), from the first to the last touching step [s]; every body
+        touched (world frame [N]) and where (`point_m`, world [m], the contacts' mean weighted
+        by force), from the first to the last touching step [s]; every body
         touched with its share of the impulse (`touched`), the drawn force (`drawn_force_n`)."""
         out = []
         k = np.array([t[0] for t in self.touches], dtype=int)
         body = np.array([t[1] for t in self.touches], dtype=int)
         force = np.array([t[2] for t in self.touches]).reshape(-1, 3)
+        point = np.array([t[3] for t in self.touches]).reshape(-1, 3)
         touching = np.linalg.norm(force, axis=1) > TOUCHING_N
         for c in self.collisions:
             k0, k1 = round(c.start_s / h), round((c.start_s + c.duration_s) / h)
@@ -211,6 +217,9 @@ class Obstacle:
                     "start_s": round(float(k[inside].min() * h), 6),
                     "end_s": round(float((k[inside].max() + 1) * h), 6),
                     "force_n": force[on_main].mean(axis=0).tolist(),
+                    "point_m": np.average(
+                        point[on_main], axis=0, weights=np.linalg.norm(force[on_main], axis=1)
+                    ).tolist(),
                     "touched": {
                         names[b]: round(i / sum(impulse.values()), 3) for b, i in impulse.items()
                     },
