@@ -54,6 +54,7 @@ def test_defaults_empty_sequences_and_odd_alignments():
                 "size_covariance": [0.25],
                 "candidates": ["imu", "torso"],
                 "candidate_likelihood_ratios": [9.0, 1.0],
+                "point": [0.1, -0.2, 0.3],
             },
         ),
         (

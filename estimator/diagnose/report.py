@@ -161,6 +161,7 @@ def event_message(e: Event) -> dict[str, Any]:
         "candidates": [name for name, _ in best],
         "candidate_likelihood_ratios": [float(r) for _, r in best],
         "ongoing": e.ongoing,
+        "point": [] if e.point is None else [float(v) for v in e.point],
     }
 
 

@@ -126,8 +126,8 @@ builtin_interfaces/Time end             # the event's end
 builtin_interfaces/Time detected        # when the detector first alarmed
 string target
 string component
-float64[] size                          # UNMODELED_CONTACT: the force on the target's centre of
-                                        # mass, world frame [N] (3 values); MODEL_ERROR: the
+float64[] size                          # UNMODELED_CONTACT: the force on the target, world
+                                        # frame [N] (3 values); MODEL_ERROR: the
                                         # normal force error [N] (1); SENSOR_FAULT: the step in
                                         # σ of its row (1)
 float64[] size_covariance               # of size, row-major (len(size)² values)
@@ -138,6 +138,9 @@ float64[] candidate_likelihood_ratios   # their likelihood ratios
 bool ongoing                            # `physfuse stream --diagnose`: the first report, its
                                         # alarm still on (interval and size so far); the final
                                         # report of the same event follows
+float64[] point                         # UNMODELED_CONTACT: where on the target the force acts,
+                                        # world frame at the event's middle [m] (3 values; none:
+                                        # at the target's centre of mass)
 """
 
 PHYSFUSE_MSGS: Mapping[str, str] = {
