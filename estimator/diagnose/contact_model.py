@@ -15,6 +15,11 @@ model error of that contact (its softness, stiffness or the surface's height: th
 force it gives is off by δ̂ = dᵀΣ⁻¹F / dᵀΣ⁻¹d). On a single hinge pressing its tip on the
 floor every force is of this kind (one dof sees one direction); a push across a standing
 foot is not.
+
+After the contact point is found (`contact_point`), an unmodeled contact that acts within
+`AT_CONTACT_M` of where its body touches something during it is that contact's force off in
+every direction (`contact_force_errors`): a touchdown or lift-off a knot off the estimate's,
+friction the model does not give.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from estimator.diagnose.unmodeled import (
 from estimator.estimate import Estimate
 
 NORMAL_P = 0.99  # the free force must beat the contact's normal force error at this level
+AT_CONTACT_M = 0.03  # a force located this near a body's contact is that contact's
 MODEL_ERROR = "model error"
 
 
@@ -114,4 +120,53 @@ def _as_contact_error(
         component="normal force (softness, stiffness or the surface's height)",
         force=np.array([float(d @ Si_F) / dd]),
         force_cov=np.array([[1.0 / dd]]),
+    )
+
+
+def contact_force_errors(
+    model: mujoco.MjModel,
+    est: Estimate,
+    events: list[Event],
+    contact_margin: float = CONTACT_MARGIN_M,
+) -> list[Event]:
+    """`events` with each unmodeled contact located (`contact_point`) within
+    `AT_CONTACT_M` of where its body touches something during it turned into a "model
+    error" of that contact: its force off by the event's force, in every direction — a
+    touchdown or lift-off a knot off its estimate, friction the model does not give (the
+    trotting quadruped's foot asking for 330 N for 50 ms as it lifts off and lands again).
+    Target "contact <body>–<what it touches>", force (3,) world frame [N]."""
+    model = with_margin(model, contact_margin)
+    data = mujoco.MjData(model)
+    return [
+        _at_contact(model, data, est, e)
+        if e.kind == "unmodeled contact" and e.point is not None
+        else e
+        for e in events
+    ]
+
+
+def _at_contact(model: mujoco.MjModel, data: mujoco.MjData, est: Estimate, e: Event) -> Event:
+    body = model.body(e.target).id
+    knots = np.flatnonzero((est.t_ns >= e.start_ns) & (est.t_ns <= e.end_ns))
+    nearest, other = np.inf, ""
+    for k in knots:
+        data.qpos[:] = est.qpos[k]
+        mujoco.mj_kinematics(model, data)
+        mujoco.mj_collision(model, data)
+        for c in data.contact[: data.ncon]:
+            pair = (int(model.geom_bodyid[c.geom1]), int(model.geom_bodyid[c.geom2]))
+            if body not in pair:
+                continue
+            distance = float(np.linalg.norm(c.pos - e.point))
+            if distance < nearest:
+                geom = int(c.geom2) if pair[0] == body else int(c.geom1)
+                other = model.geom(geom).name or model.body(model.geom_bodyid[geom]).name
+                nearest = distance
+    if nearest > AT_CONTACT_M:
+        return e
+    return replace(
+        e,
+        kind=MODEL_ERROR,
+        target=f"contact {e.target}–{other or 'world'}",
+        component="contact force (timing, friction or softness)",
     )

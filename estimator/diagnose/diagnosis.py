@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 from estimator.config import Config
-from estimator.diagnose.contact_model import contact_model_errors
+from estimator.diagnose.contact_model import contact_force_errors, contact_model_errors
 from estimator.diagnose.contact_point import contact_points
 from estimator.diagnose.detect import Detection, DetectorSettings, Event, detect
 from estimator.diagnose.sensor_faults import ONE_FAULT_S, sensor_faults
@@ -22,9 +22,9 @@ from physics.model import weight
 class Diagnosis:
     """forces, detection: the unmodeled-contact stages; events: every event in time order —
     the unmodeled contacts (on the body and point that best explain them, `contact_point`),
-    those a modeled contact's normal force explains as its "model
-    error" (`contact_model`), the sensor faults —, the contacts a sensor fault explains
-    marked `explained_by` it."""
+    those a modeled contact explains as its "model error" (its normal force off, or its
+    whole force where the event acts at it: `contact_model`), the sensor faults —, the
+    contacts a sensor fault explains marked `explained_by` it."""
 
     forces: UnmodeledForces
     detection: Detection
@@ -50,7 +50,8 @@ def diagnose(
     # the simpler explanation first: a modeled contact's normal force; the rest located
     errors = contact_model_errors(model, est, problem.known_sigma, sigma_f, detection)
     with_errors = replace(detection, events=errors)
-    contacts = contact_points(model, est, problem.known_sigma, sigma_f, with_errors)
+    located = contact_points(model, est, problem.known_sigma, sigma_f, with_errors)
+    contacts = contact_force_errors(model, est, located)
     faults = sensor_faults(est, detector)
     return Diagnosis(forces, detection, explained(contacts, faults))
 

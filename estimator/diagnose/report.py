@@ -51,6 +51,12 @@ def event_dict(e: Event, t0_ns: int) -> dict[str, Any]:
         out["candidates"] = dict(sorted(e.candidates.items(), key=lambda kv: -kv[1])[:3])
         if e.point is not None:
             out["contact_point_m"] = e.point.tolist()
+    elif e.kind == MODEL_ERROR and len(e.force) == 3:  # the contact's force off
+        out["component"] = e.component
+        out["contact_force_error_n"] = e.force.tolist()
+        out["contact_force_error_std_n"] = np.sqrt(np.diag(e.force_cov)).tolist()
+        if e.point is not None:
+            out["contact_point_m"] = e.point.tolist()
     elif e.kind == MODEL_ERROR:
         out["component"] = e.component
         out["normal_force_error_n"] = float(e.force[0])
@@ -94,6 +100,9 @@ def table(diagnosis: Diagnosis, t0_ns: int) -> str:
     for e in diagnosis.events:
         if e.kind == "unmodeled contact":
             size = f"{e.magnitude:.1f} ± {e.magnitude_std:.1f} N"
+            where = e.target
+        elif e.kind == MODEL_ERROR and len(e.force) == 3:
+            size = f"force {e.magnitude:.1f} ± {e.magnitude_std:.1f} N"
             where = e.target
         elif e.kind == MODEL_ERROR:
             size = f"normal {e.force[0]:+.1f} ± {np.sqrt(e.force_cov[0, 0]):.1f} N"
@@ -169,6 +178,8 @@ def message(e: Event) -> str:
     """One line: what the event is, where and how big."""
     if e.kind == "unmodeled contact":
         text = f"{e.magnitude:.0f} N on {e.target}"
+    elif e.kind == MODEL_ERROR and len(e.force) == 3:
+        text = f"{e.target}: the model's contact force is off by {e.magnitude:.0f} N"
     elif e.kind == MODEL_ERROR:
         text = f"{e.target}: the model's normal force is off by {e.force[0]:+.1f} N"
     else:

@@ -115,8 +115,9 @@ DIAGNOSTIC_EVENT_MSG = """\
 # kind
 uint8 UNMODELED_CONTACT=0   # a force on `target` (a body) that actuation and the modeled
                             # contacts do not explain: a push, a collision
-uint8 MODEL_ERROR=1         # a modeled contact's normal force off (softness, stiffness or the
-                            # surface's height); target "contact <body>–<geom>"
+uint8 MODEL_ERROR=1         # a modeled contact's force off: its normal force (softness,
+                            # stiffness or the surface's height; size 1 value) or its whole
+                            # force (timing, friction; size 3); target "contact <body>–<geom>"
 uint8 SENSOR_FAULT=2        # a stream's residual row that steps; target the stream,
                             # component the row ("gyro z", "FR_hip_joint position")
 
@@ -128,7 +129,8 @@ string target
 string component
 float64[] size                          # UNMODELED_CONTACT: the force on the target, world
                                         # frame [N] (3 values); MODEL_ERROR: the
-                                        # normal force error [N] (1); SENSOR_FAULT: the step in
+                                        # normal force error [N] (1) or the contact force's,
+                                        # world frame (3); SENSOR_FAULT: the step in
                                         # σ of its row (1)
 float64[] size_covariance               # of size, row-major (len(size)² values)
 float64 score                           # the peak statistic over its threshold (> 1)
