@@ -146,7 +146,9 @@ def contact_force_errors(
 
 
 def _at_contact(model: mujoco.MjModel, data: mujoco.MjData, est: Estimate, e: Event) -> Event:
-    body = model.body(e.target).id
+    body = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, e.target)
+    if body < 0:  # an unnamed body ("body N"): left as it is
+        return e
     knots = np.flatnonzero((est.t_ns >= e.start_ns) & (est.t_ns <= e.end_ns))
     nearest, other = np.inf, ""
     for k in knots:

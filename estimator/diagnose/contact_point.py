@@ -15,9 +15,11 @@ its collision geoms' surfaces (fixed in the body) —
 
 (W, S, r, F₀ as in `unmodeled`), the likelihood ratio g_pᵀ I_p⁻¹ g_p, a surface point only
 where its force F̂_p = I_p⁻¹ g_p presses into the surface (F̂_p · n < 0, n the outward
-normal: a contact pushes). The best hypothesis names the event's body and its contact point
-(`Event.point`, world frame at the event's middle knot; None at the centre of mass), and
-its F̂_p is the event's force.
+normal: a contact pushes). A body's evidence is the mean likelihood exp(ratio / 2) over its
+hypotheses, half the prior on its centre of mass and half spread over its surface points
+(the best of many chance fits does not make a body with many points win). The likeliest
+body is the event's; its best hypothesis the contact point (`Event.point`, world frame at
+the event's middle knot; None at the centre of mass), whose F̂_p is the event's force.
 """
 
 from __future__ import annotations
@@ -119,8 +121,9 @@ def _located(
     b = max(evidence, key=evidence.__getitem__)
     best = int(np.argmax(np.where(body == b, ratio, -np.inf)))
     _, p, n = hypotheses[best]
-    name = model.body(b).name
-    cov = detection.cov[forces.bodies.index(name)] * detection.window / len(knots)
+    index = forces.body_ids.tolist().index(b)
+    name = forces.bodies[index]
+    cov = detection.cov[index] * detection.window / len(knots)
     point = None if n is None else _world(data, b, p, False)
     return replace(e, target=name, force=F[best], force_cov=cov, point=point)
 
