@@ -13,6 +13,9 @@ observer on the kinematic smoother's estimate with the same isolation and detect
 collisions (with an obstacle not in the model, `estimator/simulate/obstacle.py`; their force
 as the simulation measured it) of at least 30 N for at least 0.1 s are counted apart (the
 target: recall ≥ 95%, isolation ≥ 90%, force error ≤ 20% at ≤ 1 false alarm per minute).
+Slips (a foot on a low-friction patch, `estimator/simulate/patch.py`; as measured): recall,
+isolation (the foot), the distance slid's error in the ‖F‖ columns, slips reported where
+none happened per minute.
 Prints a table and writes DIR/diagnostics.json.
 
 --online: the same log also through the streaming estimator with its online detector
@@ -180,6 +183,8 @@ def streamed(config, log_path: Path, duration: float) -> dict:
 def _matched(m: Matched) -> dict:
     t = m.truth
     force = float(np.linalg.norm(t["force_n"])) if "force_n" in t else None
+    if t["kind"] == "slip":  # its size: the distance slid [m]
+        force = t["distance_m"]
     out = {
         "kind": t["kind"],
         "start_s": t["start_s"],
@@ -207,7 +212,7 @@ def summarize(runs: list[dict]) -> list[dict]:
         minutes = sum(r["minutes"] for r in mine)
         alarms = {
             kind: sum(a["kind"] == kind for r in mine for a in r["false_alarms"])
-            for kind in ("unmodeled contact", "sensor fault", "model error")
+            for kind in ("unmodeled contact", "sensor fault", "model error", "slip")
         }
         events = [e for r in mine for e in r["events"]]
         baseline_alarms = sum(len(r["momentum_observer"]["false_alarms"]) for r in mine)
@@ -225,6 +230,8 @@ def summarize(runs: list[dict]) -> list[dict]:
                 )
                 if all("online" in r for r in mine):
                     rows[-1]["online"] = _online_row(mine, kind, group is not every)
+        slips = [e for e in events if e["kind"] == "slip"]
+        rows.append(_row(name, "slip", slips, alarms["slip"], minutes))
         for kind in ("imu bias step", "encoder offset"):
             group = [e for e in events if e["kind"] == kind]
             rows.append(_row(name, kind, group, alarms["sensor fault"], minutes))

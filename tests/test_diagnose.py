@@ -12,6 +12,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
+from diagnosed import diagnosed
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
@@ -34,7 +35,8 @@ from estimator.simulate import simulate
 from estimator.simulate.disturbances import PUSH_FORCE_N, PUSH_S, fall_time
 from estimator.simulate.model_scenario import model_scenario
 from estimator.simulate.obstacle import Collision
-from estimator.simulate.simulation import T0_NS, scenario_config
+from estimator.simulate.patch import Patch
+from estimator.simulate.simulation import T0_NS
 from estimator.stream import Stream
 from physics.dynamics import make_dynamics
 from physics.model import weight
@@ -123,7 +125,9 @@ def test_disturbances_write_their_truth_and_leave_out_pushes_the_robot_cannot_ta
     pushes = [e for e in events if e["kind"] == "push"]
     collisions = [e for e in events if e["kind"] == "collision"]
     drawn = [p for p in result.pushes if isinstance(p, Collision)]
-    assert len(pushes) == len(result.pushes) - len(drawn) >= 1
+    patches = [p for p in result.pushes if isinstance(p, Patch)]
+    assert len(patches) == 1 and patches[0].body.endswith("_calf")  # one of Go2's feet
+    assert len(pushes) == len(result.pushes) - len(drawn) - len(patches) >= 1
     assert len(collisions) == len(drawn) >= 1  # seed 3 brings the obstacle against a hip
     for c in collisions:
         assert sum(c["touched"].values()) == pytest.approx(1.0, abs=2e-3)
@@ -174,14 +178,7 @@ def test_a_collision_is_located_on_the_surface_where_the_obstacle_touched(tmp_pa
     go2 = model_scenario(ROOT / "physics" / "models" / "menagerie" / "go2.xml")
     press = Collision("base", 1.0, 0.2, (0.0, 50.0, 0.0))
     scenario = replace(go2, pushes=lambda rng, duration: (press,), condition="disturbances")
-    log, config_path = tmp_path / "c.mcap", tmp_path / "c.toml"
-    simulate(scenario, log, seed=0, duration_s=2.5)
-    config_path.write_text(scenario_config(scenario, config_path))
-    config = load_config(config_path)
-    measurements = read_log(log, config).measurements
-    settings = Settings.from_config(config)
-    est, _ = estimate(config, measurements, settings)
-    diagnosis = diagnose(config, measurements, est, settings)
+    config, log, _, est, diagnosis = diagnosed(scenario, tmp_path, 2.5)
     (truth,) = [e for e in true_events(log) if e["kind"] == "collision"]
     (e,) = [e for e in diagnosis.events if e.kind == "unmodeled contact"]
     assert e.target == truth["body"] == "base"

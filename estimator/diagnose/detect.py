@@ -57,7 +57,8 @@ class Event:
 
     kind: "unmodeled contact" (target: the body; force: world frame [N], at `point` or its
     centre of mass) or "sensor fault" (target: the stream; component: the residual row, "gyro z",
-    "FR_hip_joint position"; force: the size of the step in the row's units, whitened σ).
+    "FR_hip_joint position"; force: the size of the step in the row's units, whitened σ),
+    "model error" (`contact_model`) or "slip" (`slip`: force (1,) the distance slid [m]).
     score: the peak statistic over its threshold (> 1).
     """
 

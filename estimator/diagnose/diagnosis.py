@@ -10,6 +10,7 @@ from estimator.diagnose.contact_model import contact_force_errors, contact_model
 from estimator.diagnose.contact_point import contact_points
 from estimator.diagnose.detect import Detection, DetectorSettings, Event, detect
 from estimator.diagnose.sensor_faults import ONE_FAULT_S, sensor_faults
+from estimator.diagnose.slip import slips
 from estimator.diagnose.unmodeled import UnmodeledForces, unmodeled_forces
 from estimator.estimate import Estimate
 from estimator.io.logs.measurements import Measurement
@@ -23,8 +24,8 @@ class Diagnosis:
     """forces, detection: the unmodeled-contact stages; events: every event in time order —
     the unmodeled contacts (on the body and point that best explain them, `contact_point`),
     those a modeled contact explains as its "model error" (its normal force off, or its
-    whole force where the event acts at it: `contact_model`), the sensor faults —, the
-    contacts a sensor fault explains marked `explained_by` it."""
+    whole force where the event acts at it: `contact_model`), the slips (`slip`), the sensor
+    faults —, the contacts a sensor fault or a slip explains marked `explained_by` it."""
 
     forces: UnmodeledForces
     detection: Detection
@@ -52,15 +53,33 @@ def diagnose(
     with_errors = replace(detection, events=errors)
     located = contact_points(model, est, problem.known_sigma, sigma_f, with_errors)
     contacts = contact_force_errors(model, est, located)
+    slid = slips(model, est, weight(model), detector)
     faults = sensor_faults(est, detector)
-    return Diagnosis(forces, detection, explained(contacts, faults))
+    return Diagnosis(forces, detection, explained(on_slips(contacts, slid) + slid, faults))
+
+
+def on_slips(contacts: list[Event], slid: list[Event]) -> list[Event]:
+    """`contacts` with each unmodeled contact or contact model error on a slipping body, and
+    overlapping its slip, explained by the slip: the model's friction, which the surface did
+    not give, is what the physics residual shows there."""
+    out = []
+    for event in contacts:
+        for s in slid:
+            body = event.target.removeprefix("contact ").split("–")[0]
+            overlaps = event.start_ns <= s.end_ns and event.end_ns >= s.start_ns
+            if body == s.target and overlaps and not event.explained_by:
+                event = replace(event, explained_by=f"slip {s.target}")
+                break
+        out.append(event)
+    return out
 
 
 def explained(contacts: list[Event], faults: list[Event]) -> list[Event]:
-    """All events in time order; an unmodeled contact that starts within `ONE_FAULT_S` of a
-    sensor fault's start explained by it: the estimate took the faulty reading in, and its
-    physics does not add up there — before the fault's start too, since a smoother spreads
-    the reading both ways and the change point is known to a few tenths of a second
+    """All events in time order; a contact event (an unmodeled contact, a model error, a
+    slip) that starts within `ONE_FAULT_S` of a sensor fault's start explained by it: the
+    estimate took the faulty reading in, and its physics does not add up there — before the
+    fault's start too, since a smoother spreads the reading both ways and the change point is
+    known to a few tenths of a second
     (quadruped_trot, an accelerometer's step: the base's unmodeled force 0.12 and 0.27 s
     before it)."""
     out = list(faults)

@@ -5,6 +5,7 @@
                                        hardware_id the body, contact or stream, level WARN (ERROR
                                        for a sensor fault), key/values: start_s, end_s,
                                        force_n (x y z) ± σ, component, score, explained_by
+                                       (a slip: slid_m ± σ)
 /diagnostics/events                    physfuse_msgs/msg/DiagnosticEvent, the same events
                                        typed (msgs/physfuse_msgs/msg/DiagnosticEvent.msg):
                                        kind, interval, target, size and its covariance
@@ -23,12 +24,13 @@ import numpy as np
 from estimator.diagnose.contact_model import MODEL_ERROR
 from estimator.diagnose.detect import Event
 from estimator.diagnose.diagnosis import Diagnosis
+from estimator.diagnose.slip import SLIP
 from estimator.io.logs import ros2_types
 from estimator.io.mcap_writer import MessageSink, header, time_msg, vector3
 
 DIAGNOSTICS = "/diagnostics"
 EVENTS = "/diagnostics/events"
-KINDS = {"unmodeled contact": 0, MODEL_ERROR: 1, "sensor fault": 2}  # DiagnosticEvent.kind
+KINDS = {"unmodeled contact": 0, MODEL_ERROR: 1, "sensor fault": 2, SLIP: 3}  # .kind
 UNMODELED_FORCE = "/diagnostics/unmodeled_force/"
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 WARN, ERROR = 1, 2  # diagnostic_msgs/DiagnosticStatus levels
@@ -61,6 +63,10 @@ def event_dict(e: Event, t0_ns: int) -> dict[str, Any]:
         out["component"] = e.component
         out["normal_force_error_n"] = float(e.force[0])
         out["normal_force_error_std_n"] = float(np.sqrt(e.force_cov[0, 0]))
+    elif e.kind == SLIP:
+        out["component"] = e.component
+        out["slid_m"] = float(e.force[0])
+        out["slid_std_m"] = float(np.sqrt(e.force_cov[0, 0]))
     else:
         out["component"] = e.component
         out["step_sigma"] = float(e.force[0])
@@ -107,6 +113,9 @@ def table(diagnosis: Diagnosis, t0_ns: int) -> str:
         elif e.kind == MODEL_ERROR:
             size = f"normal {e.force[0]:+.1f} ± {np.sqrt(e.force_cov[0, 0]):.1f} N"
             where = e.target
+        elif e.kind == SLIP:
+            size = f"slid {100 * e.force[0]:.1f} ± {100 * np.sqrt(e.force_cov[0, 0]):.1f} cm"
+            where = e.component
         else:
             size = f"step {e.force[0]:+.1f}σ"
             where = f"{e.target} {e.component}"
@@ -182,6 +191,8 @@ def message(e: Event) -> str:
         text = f"{e.target}: the model's contact force is off by {e.magnitude:.0f} N"
     elif e.kind == MODEL_ERROR:
         text = f"{e.target}: the model's normal force is off by {e.force[0]:+.1f} N"
+    elif e.kind == SLIP:
+        text = f"{e.component} slid {100 * e.force[0]:.1f} cm where the model holds it"
     else:
         text = f"{e.target} {e.component} stepped {e.force[0]:+.1f} sigma"
     text += f" (explained by {e.explained_by})" if e.explained_by else ""

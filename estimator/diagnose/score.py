@@ -1,12 +1,13 @@
 """Detected events against the truth of a simulated log (`disturbances` condition).
 
 A detection matches a true event of its kind (`KIND_OF`: a push or a collision with an
-obstacle not in the model is an unmodeled contact) when their intervals, each widened by
-`TOLERANCE_S`, overlap (a sensor fault's true interval: its start). Detections another
-explains (`Event.explained_by`) are left out: they are reported as consequences. A true push
-(collision) counts as found when a detection of an unmodeled contact matches it; isolated when that
-detection names its body (a sensor fault: its stream and component); its force error is
-|‖F̂‖ − ‖F‖| / ‖F‖. A detection that matches no true event is a false alarm.
+obstacle not in the model is an unmodeled contact; a foot sliding on a low-friction patch a
+slip) when their intervals, each widened by `TOLERANCE_S`, overlap (a sensor fault's true
+interval: its start). Detections another explains (`Event.explained_by`) are left out: they
+are reported as consequences. A true push (collision) counts as found when a detection of an
+unmodeled contact matches it; isolated when that detection names its body (a sensor fault:
+its stream and component); its force error is |‖F̂‖ − ‖F‖| / ‖F‖ (a slip's: of the
+distance slid). A detection that matches no true event is a false alarm.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ KIND_OF = {
     "collision": "unmodeled contact",
     "imu bias step": "sensor fault",
     "encoder offset": "sensor fault",
+    "slip": "slip",
 }
 
 
@@ -63,9 +65,10 @@ class Matched:
 
     @property
     def force_error(self) -> float:
-        if self.detection is None or "force_n" not in self.truth:
+        size = self.truth.get("force_n", self.truth.get("distance_m"))
+        if self.detection is None or size is None:
             return float("nan")
-        true = float(np.linalg.norm(self.truth["force_n"]))
+        true = float(np.linalg.norm(size))
         return abs(self.detection.magnitude - true) / true
 
     @property
@@ -97,8 +100,8 @@ def score(
     used: set[int] = set()
     for t in truth:
         start = t0_ns + round(t["start_s"] * 1e9)
-        end = t0_ns + round(t["end_s"] * 1e9) if "force_n" in t else start
         kind = KIND_OF[t["kind"]]
+        end = start if kind == "sensor fault" else t0_ns + round(t["end_s"] * 1e9)
         entry = Matched(t | {"start_ns": start, "end_ns": end})
         for i, e in enumerate(events):
             overlaps = e.start_ns - tol <= end + tol and e.end_ns + tol >= start - tol

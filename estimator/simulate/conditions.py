@@ -27,9 +27,10 @@ dropouts and outliers mixed in). With one:
     no_commands  nominal, but the commands are not logged: no command topic in the log and
                  no command stream in the config.
     disturbances nominal + unlogged pushes on random bodies (half of them, where the body has
-                 a collision geom, collisions with an obstacle not in the model), an IMU bias
-                 step and an encoder offset jump, their truth in the log (`disturbances`: what
-                 the contact diagnostics must find).
+                 a collision geom, collisions with an obstacle not in the model), a
+                 low-friction patch under a foot (a slip), an IMU bias step and an encoder
+                 offset jump, their truth in the log (`disturbances`: what the contact
+                 diagnostics must find).
 
 Under every condition but disturbances the seed draws the same model mismatch (up to
 `mismatch`'s signed factors), controller and pushes, so nominal, occlusion, outliers and
@@ -49,6 +50,7 @@ from estimator.simulate import disturbances
 from estimator.simulate.errors import SimulationError
 from estimator.simulate.mismatch import SignedMismatch
 from estimator.simulate.obstacle import touchable
+from estimator.simulate.patch import feet
 from estimator.simulate.scenarios import Scenario
 from estimator.simulate.sensors import (
     NS,
@@ -74,7 +76,8 @@ CONDITIONS: Mapping[str, str] = {
     "no_mocap": "nominal without motion capture (no mocap stream in the log or the config): "
     "IMU, encoders and commands, as a legged robot in the field",
     "disturbances": "nominal + pushes on random bodies (20-100 N, 0.05-0.3 s), half of them "
-    "collisions with an obstacle not in the model, an IMU bias step, an encoder offset jump",
+    "collisions with an obstacle not in the model, a low-friction patch under a foot, an IMU bias "
+    "step, an encoder offset jump",
 }
 
 OUTLIER_PROBABILITY = 0.02  # per frame and body (or marker), the `outliers` condition
@@ -199,7 +202,9 @@ def with_condition(scenario: Scenario, condition: str) -> Scenario:
         return replace(
             scenario,
             sensors=faulty,
-            pushes=disturbances.random_body_pushes(bodies, touchable(model, bodies)),
+            pushes=disturbances.random_body_pushes(
+                bodies, touchable(model, bodies), feet(model, scenario.keyframe)
+            ),
             condition=condition,
         )
     return replace(scenario, sensors=sensors, mismatch=mismatch, condition=condition)

@@ -16,6 +16,9 @@ On top of `nominal` (the scenario's own pushes replaced):
     IMU bias step the first IMU's gyro (or, with probability ½, accelerometer) bias on one axis
                   steps by ±0.05 rad/s (±0.5 m/s²) at a uniform time in 70–80% of the log and
                   stays.
+    slip          with feet (robot bodies touching the world at the keyframe), one low-friction
+                  patch: for 0.3–0.8 s at a uniform time within the pushes' span, one foot's
+                  (uniform) sliding friction is 0.01–0.08 (uniform; `patch.py`).
     encoder jump  one joint's encoder reading (uniform over the encoders' joints) jumps by
                   ±0.02 rad (±5 mm on a slide) at a uniform time in 85–95% of the log and
                   stays.
@@ -27,10 +30,11 @@ The sensor faults come after the pushes: an estimate that takes in a faulty sens
 from then on, and the pushes are to be found on an estimate as good as the sensors allow.
 
 The truth is the metadata record `physfuse.condition`, key `events`: a JSON list of
-{"kind": "push" | "collision" | "imu bias step" | "encoder offset", "start_s", "end_s", and
+{"kind": "push" | "collision" | "slip" | "imu bias step" | "encoder offset", "start_s", "end_s", and
 "body", "force_n" (world frame) for a push or a collision (as the simulation measured it:
 the body that took most of it, its first and last touching step, its mean force on the
-robot); "stream", "component", "step" for a sensor fault}, times
+robot); "body", "distance_m" for a "slip" (a patch the foot slid on, from its first
+to its last sliding step); "stream", "component", "step" for a sensor fault}, times
 in seconds of simulated time from the start of the log (the log's stamps less their clock
 offsets). The draws come after the scenario's own (controller, the sensors' noise), so a
 disturbed log and its nominal twin differ only by them and by what they change.
@@ -48,6 +52,7 @@ import numpy as np
 from estimator.simulate.controllers import Push
 from estimator.simulate.errors import SimulationError
 from estimator.simulate.obstacle import Collision
+from estimator.simulate.patch import Patch
 from estimator.simulate.sensors import NS, Encoders, Imu, SensorOutput, Trajectory, Wrapping
 
 PUSH_FORCE_N = (20.0, 100.0)
@@ -62,6 +67,8 @@ IMU_FAULT, ENCODER_FAULT = (0.70, 0.80), (0.85, 0.95)  # of the log
 GYRO_STEP = 0.05  # rad/s
 ACCEL_STEP = 0.5  # m/s²
 ENCODER_JUMP = (0.02, 0.005)  # rad on a hinge, m on a slide
+PATCH_S = (0.3, 0.8)
+PATCH_FRICTION = (0.01, 0.08)
 
 
 def push_bodies(model: mujoco.MjModel) -> list[str]:
@@ -79,11 +86,15 @@ def push_bodies(model: mujoco.MjModel) -> list[str]:
 
 
 def random_body_pushes(
-    bodies: list[str], touchable: Sequence[str] = ()
+    bodies: list[str],
+    touchable: Sequence[str] = (),
+    feet: Sequence[tuple[str, tuple[int, ...]]] = (),
 ) -> Callable[[np.random.Generator, float], tuple[Push, ...]]:
-    """A push factory (rng, duration) → pushes, as the module docstring says; on a body in
-    `touchable`, each is with probability `COLLISION_PROBABILITY` a `Collision` instead (drawn
-    from a generator spawned off rng: the pushes' own draws are those without collisions)."""
+    """A push factory (rng, duration) → pushes in time order, as the module docstring says;
+    on a body in `touchable`, each is with probability `COLLISION_PROBABILITY` a `Collision`
+    instead, and with `feet` ((body, geoms) pairs: `patch.feet`) one `Patch` is among them
+    (both drawn from a generator spawned off rng: the pushes' own draws are those without
+    collisions and patches)."""
     if not bodies:
         raise SimulationError("condition disturbances: the model has no moving body to push")
 
@@ -94,7 +105,7 @@ def random_body_pushes(
         while True:
             length = float(rng.uniform(*PUSH_S))
             if t + length > PUSHES_UNTIL * duration_s:
-                return tuple(out)
+                return tuple(sorted(out + _patch(kinds, duration_s, feet), key=_start))
             body = bodies[int(rng.integers(len(bodies)))]
             magnitude = rng.uniform(*PUSH_FORCE_N)
             azimuth = rng.uniform(0.0, 2.0 * np.pi)
@@ -108,6 +119,22 @@ def random_body_pushes(
             t += length + float(rng.uniform(*PUSH_EVERY_S))
 
     return pushes
+
+
+def _patch(
+    rng: np.random.Generator, duration_s: float, feet: Sequence[tuple[str, tuple[int, ...]]]
+) -> list[Push]:
+    length = float(rng.uniform(*PATCH_S))
+    if not feet or MARGIN_S + length > PUSHES_UNTIL * duration_s:
+        return []
+    start = float(rng.uniform(MARGIN_S, PUSHES_UNTIL * duration_s - length))
+    body, geoms = feet[int(rng.integers(len(feet)))]
+    friction = round(float(rng.uniform(*PATCH_FRICTION)), 4)
+    return [Patch(body, round(start, 6), round(length, 6), (0.0, 0.0, 0.0), geoms, friction)]
+
+
+def _start(push: Push) -> float:
+    return push.start_s
 
 
 @dataclass(frozen=True)

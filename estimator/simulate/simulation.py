@@ -56,6 +56,7 @@ from estimator.simulate.disturbances import push_events
 from estimator.simulate.errors import SimulationError
 from estimator.simulate.mismatch import Mismatch, MismatchRecord
 from estimator.simulate.obstacle import Collision, Obstacle, add_obstacle
+from estimator.simulate.patch import Patch, Patches
 from estimator.simulate.scenarios import Controller, Scenario, get_scenario
 from estimator.simulate.sensors import NS, Imu, Trajectory, site_ids
 from physics.dynamics import Dynamics, make_dynamics
@@ -156,7 +157,7 @@ def simulate(
     controller = scenario.controller(load_model(scenario.model), rng, duration)
     pushes = scenario.pushes(rng, duration)
 
-    trajectory, collisions = _run(scenario, dyn.model, controller, pushes, duration, progress)
+    trajectory, measured = _run(scenario, dyn.model, controller, pushes, duration, progress)
     while scenario.condition == "disturbances" and (
         (fall := disturbances.fall_time(trajectory)) is not None and pushes
     ):  # a push the robot cannot withstand is left out and the run repeated
@@ -164,7 +165,7 @@ def simulate(
         rng = copy.deepcopy(start)
         controller = scenario.controller(load_model(scenario.model), rng, duration)
         scenario.pushes(rng, duration)
-        trajectory, collisions = _run(scenario, dyn.model, controller, pushes, duration, progress)
+        trajectory, measured = _run(scenario, dyn.model, controller, pushes, duration, progress)
     sensed: list[EncodedMessage] = []  # encoded: an hour of a robot's messages fits
     truths: dict[str, dict[str, Any]] = {}
     for sensor in scenario.sensors:
@@ -178,7 +179,7 @@ def simulate(
     metadata = _metadata(scenario, seed, duration, trajectory, record, true_softness, pushes)
     if scenario.condition is not None:
         metadata["physfuse.condition"] = _condition_metadata(
-            scenario.condition, truths, pushes, collisions
+            scenario.condition, truths, pushes, measured
         )
     try:
         writer = Ros2Writer(out, compression=compression)
@@ -216,8 +217,9 @@ def _run(
     duration_s: float,
     progress: bool,
 ) -> tuple[Trajectory, list[dict[str, Any]]]:
-    """Step the true model for `duration_s`; its trajectory and the collisions' truth (the
-    pushes that are `Collision`s, as the obstacle delivered them: `obstacle.Obstacle.events`)."""
+    """Step the true model for `duration_s`; its trajectory and the truth of the collisions
+    and slips (the pushes that are `Collision`s, as the obstacle delivered them:
+    `obstacle.Obstacle.events`; the `Patch`es a foot slid on: `patch.Patches.events`)."""
     h = float(m.opt.timestep)
     steps = max(1, round(duration_s / h))
     d = mujoco.MjData(m)
@@ -237,11 +239,13 @@ def _run(
     body_xpos = np.zeros((steps + 1, m.nbody, 3))
     body_xquat = np.zeros((steps + 1, m.nbody, 4))
     collisions = [p for p in pushes if isinstance(p, Collision)]
-    forces = [p for p in pushes if not isinstance(p, Collision)]
+    patches = Patches(m, [p for p in pushes if isinstance(p, Patch)])
+    forces = [p for p in pushes if not isinstance(p, Collision | Patch)]
     obstacle = Obstacle(m, collisions, steps) if collisions else None
     bar = tqdm(total=steps, desc=f"simulate {scenario.name}", unit="step", disable=not progress)
     with bar:
         for k in range(steps + 1):
+            patches.apply(k * h)  # the contacts made in this step take its friction
             mujoco.mj_step1(m, d)  # positions, velocities and their sensors at state k
             if not (np.isfinite(d.qpos).all() and np.isfinite(d.qvel).all()):
                 raise SimulationError(
@@ -260,9 +264,11 @@ def _run(
             mujoco.mj_step2(m, d)  # forces, constraint solve, acceleration sensors, integrate
             if obstacle:
                 obstacle.measure(d, k)
+            patches.measure(d, k)
             ctrl[k], qfrc_actuator[k] = d.ctrl, d.qfrc_actuator
             sensordata_acc[k] = d.sensordata
             bar.update()
+    patches.restore()
     rot = Rotation.from_matrix(site_xmat.reshape(-1, 3, 3))
     site_xquat = rot.as_quat(scalar_first=True).reshape(steps + 1, m.nsite, 4)
     trajectory = Trajectory(
@@ -281,7 +287,8 @@ def _run(
         body_xquat=body_xquat,
     )
     names = [m.body(b).name for b in range(m.nbody)]
-    return trajectory, obstacle.events(h, names) if obstacle else []
+    measured = (obstacle.events(h, names) if obstacle else []) + patches.events(h, names)
+    return trajectory, measured
 
 
 def _simulation_model(scenario: Scenario) -> mujoco.MjModel:
@@ -420,13 +427,14 @@ def _condition_metadata(
     condition: str,
     truths: dict[str, dict[str, Any]],
     pushes: tuple[Push, ...],
-    collisions: list[dict[str, Any]],
+    measured: list[dict[str, Any]],
 ) -> dict[str, str]:
     """The `physfuse.condition` record: the condition, and the occlusions it drew (if any);
-    under `disturbances`, its `events` (disturbances.py; collisions as measured)."""
+    under `disturbances`, its `events` (disturbances.py; collisions and slips as measured)."""
     record = {"name": condition, "description": CONDITIONS[condition]}
     if condition == "disturbances":
-        events = push_events([p for p in pushes if not isinstance(p, Collision)]) + collisions
+        events = push_events([p for p in pushes if not isinstance(p, Collision | Patch)])
+        events += measured
         events += [e for truth in truths.values() for e in truth.get("events", [])]
         record["events"] = json.dumps(sorted(events, key=lambda e: e["start_s"]))
     occlusions = {

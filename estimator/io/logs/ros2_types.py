@@ -120,6 +120,9 @@ uint8 MODEL_ERROR=1         # a modeled contact's force off: its normal force (s
                             # force (timing, friction; size 3); target "contact <body>–<geom>"
 uint8 SENSOR_FAULT=2        # a stream's residual row that steps; target the stream,
                             # component the row ("gyro z", "FR_hip_joint position")
+uint8 SLIP=3                # a modeled contact sliding where the model would hold it (less
+                            # friction than the model's); target the body, component
+                            # "contact <body>–<what it touches>"
 
 std_msgs/Header header                  # stamp: the event's start; frame_id: "world"
 uint8 kind
@@ -131,10 +134,12 @@ float64[] size                          # UNMODELED_CONTACT: the force on the ta
                                         # frame [N] (3 values); MODEL_ERROR: the
                                         # normal force error [N] (1) or the contact force's,
                                         # world frame (3); SENSOR_FAULT: the step in
-                                        # σ of its row (1)
+                                        # σ of its row (1); SLIP: the distance its
+                                        # contact slid [m] (1)
 float64[] size_covariance               # of size, row-major (len(size)² values)
 float64 score                           # the peak statistic over its threshold (> 1)
-string explained_by                     # the sensor fault that explains it ("": none)
+string explained_by                     # the sensor fault or slip that explains it
+                                        # ("": none)
 string[] candidates                     # UNMODELED_CONTACT: the best-fitting bodies, best first
 float64[] candidate_likelihood_ratios   # their likelihood ratios
 bool ongoing                            # `physfuse stream --diagnose`: the first report, its
