@@ -48,7 +48,7 @@ from estimator.batch import estimate  # noqa: E402
 from estimator.config import load_config  # noqa: E402
 from estimator.diagnose import DetectorSettings, diagnose  # noqa: E402
 from estimator.diagnose.online import CALIBRATE_S  # noqa: E402
-from estimator.diagnose.score import Matched, score, true_events  # noqa: E402
+from estimator.diagnose.score import KIND_OF, Matched, score, true_events  # noqa: E402
 from estimator.io.logs import read_log  # noqa: E402
 from estimator.io.logs.source import open_log  # noqa: E402
 from estimator.settings import Settings  # noqa: E402
@@ -139,8 +139,8 @@ def run(name: str, seed: int, duration: float, work: Path, online: bool = False)
 
 
 def streamed(config, log_path: Path, duration: float) -> dict:
-    """The log through `Stream(diagnose=...)`: its final events scored against the pushes
-    and collisions that start after the calibration."""
+    """The log through `Stream(diagnose=...)`: its final events scored against the pushes,
+    collisions and slips that start after the calibration."""
     settings = replace(Settings.from_config(config), max_iterations=2, fit_softness="none")
     stream = Stream(config, settings, lag_s=0.5, diagnose=DetectorSettings())
     step = max(1, round(ONLINE_STEP_S / stream.h))
@@ -154,16 +154,19 @@ def streamed(config, log_path: Path, duration: float) -> dict:
         events += update.events
     final = [e for e in events if not e.ongoing]
     truth = [
-        t for t in true_events(log_path) if t["kind"] in CONTACTS and t["start_s"] >= CALIBRATE_S
+        t
+        for t in true_events(log_path)
+        if t["kind"] in (*CONTACTS, "slip") and t["start_s"] >= CALIBRATE_S
     ]
     result = score(final, truth, T0_NS, duration - CALIBRATE_S)
-    faults = [t["start_s"] for t in true_events(log_path) if t["kind"] not in CONTACTS]
+    faults = [t["start_s"] for t in true_events(log_path) if KIND_OF[t["kind"]] == "sensor fault"]
     return {
         "minutes": result.minutes,
         "stream_s": time.perf_counter() - start,
         "events": [_matched(m) for m in result.matched],
         "false_alarms": [
             {
+                "kind": e.kind,
                 "start_s": (e.start_ns - T0_NS) / 1e9,
                 "target": e.target,
                 "size": e.magnitude,
@@ -232,6 +235,8 @@ def summarize(runs: list[dict]) -> list[dict]:
                     rows[-1]["online"] = _online_row(mine, kind, group is not every)
         slips = [e for e in events if e["kind"] == "slip"]
         rows.append(_row(name, "slip", slips, alarms["slip"], minutes))
+        if all("online" in r for r in mine):
+            rows[-1]["online"] = _online_row(mine, "slip", False)
         for kind in ("imu bias step", "encoder offset"):
             group = [e for e in events if e["kind"] == kind]
             rows.append(_row(name, kind, group, alarms["sensor fault"], minutes))
@@ -288,7 +293,7 @@ def _online_row(runs: list[dict], kind: str, strong_only: bool) -> dict:
         events = _strong(events)
     found = [e for e in events if e["found"]]
     delays = [1e3 * e["delay_s"] for e in found]
-    alarms = [a for r in runs for a in r["online"]["false_alarms"]]
+    alarms = [a for r in runs for a in r["online"]["false_alarms"] if a["kind"] == KIND_OF[kind]]
     minutes = sum(r["online"]["minutes"] for r in runs)
     return {
         "count": len(events),
@@ -379,7 +384,7 @@ def main() -> None:
         )
     online = [r for r in rows if "online" in r]
     if online:
-        print("\nonline (stream --diagnose), pushes and collisions after the calibration:")
+        print("\nonline (stream --diagnose), pushes, collisions and slips after the calibration:")
         print("scenario | events | n | recall | isolation | delay p50 ms | p95 | false/min")
         for r in online:
             o = r["online"]

@@ -29,6 +29,7 @@ import numpy as np
 from estimator.config import Config
 from estimator.diagnose.detect import DetectorSettings, Event
 from estimator.diagnose.online import OnlineDetector
+from estimator.diagnose.slip import OnlineSlips
 from estimator.errors import ConfigError, LogError
 from estimator.estimate import Estimate
 from estimator.io.logs.measurements import (
@@ -116,8 +117,8 @@ class Stream:
     lag_s: how long a knot stays in the window before its estimate is final (smoothed).
     stale_s: a stream this far behind the newest sample stops holding knots back.
     clock: the time of arrival of a pushed message (seconds; `time.perf_counter`).
-    diagnose: run the unmodeled-contact detector on the newest knots (`Update.events`;
-        `estimator.diagnose.online`).
+    diagnose: run the unmodeled-contact and slip detectors on the newest knots
+        (`Update.events`; `estimator.diagnose.online`, `estimator.diagnose.slip`).
     """
 
     def __init__(
@@ -133,10 +134,11 @@ class Stream:
         self.compiled = model_with_sensors(config)
         self.model = self.compiled[0]
         self.h = settings.h or float(self.model.opt.timestep)
-        self.detector = None
+        self.detector, self.slips = None, None
         if diagnose is not None:
             sigma_f = settings.contact_force_std * weight(self.model)
             self.detector = OnlineDetector(self.model, sigma_f, self.h, diagnose)
+            self.slips = OnlineSlips(self.model, weight(self.model), self.h, diagnose)
         self.step_ns = round(self.h * 1e9)
         self.lag_knots = max(1, round(lag_s / self.h))
         self.backlog_step = max(1, round(BACKLOG_STEP * self.lag_knots))
@@ -221,8 +223,8 @@ class Stream:
         step = self.lag.finish(self._measurements())
         if step is not None:
             update = self._published(step, 0, start)
-            if self.detector is not None:
-                update.events.extend(self.detector.close())
+            if self.detector is not None and self.slips is not None:
+                update.events.extend(self.detector.close() + self.slips.close())
             yield update
 
     # -- the knot grid ---------------------------------------------------------------------
@@ -311,6 +313,8 @@ class Stream:
         events = []
         if self.detector is not None and step.known_sigma is not None:
             events = self.detector.add(step.estimate, step.newest, step.known_sigma)
+        if self.slips is not None:
+            events += self.slips.add(step.estimate, step.newest)
         now = self.clock()
         latency = [now - self._arrival(step.first + i, now) for i in step.newest]
         c = self.counts

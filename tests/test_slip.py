@@ -1,6 +1,7 @@
 """Slips: a low-friction patch under a foot in the simulated world (its truth, the slide it
 measured) and the slip detector on the estimate of its log (found on the foot, sized, the
-physics residual it leaves explained by it, and the model's own slides left alone)."""
+physics residual it leaves explained by it, and the model's own slides left alone), in
+batch and online."""
 
 from __future__ import annotations
 
@@ -12,24 +13,29 @@ import numpy as np
 import pytest
 from diagnosed import diagnosed
 
+from estimator.config import load_config
+from estimator.diagnose import DetectorSettings, Event
 from estimator.diagnose.report import KINDS, event_dict, event_message, message
 from estimator.diagnose.score import true_events
 from estimator.diagnose.slip import SLIP, STICKING, slides
+from estimator.io.logs.source import open_log
+from estimator.settings import Settings
 from estimator.simulate import simulate
 from estimator.simulate.model_scenario import model_scenario
 from estimator.simulate.patch import Patch, feet
-from estimator.simulate.simulation import T0_NS
+from estimator.simulate.simulation import T0_NS, scenario_config
+from estimator.stream import Stream
 from physics.model import load_model, weight
 
 ROOT = Path(__file__).resolve().parents[1]
 GO2 = ROOT / "physics" / "models" / "menagerie" / "go2.xml"
 
 
-def _go2_on_a_patch(friction: float):
-    """Go2 standing; its rear right foot's friction `friction` for 0.6 s from 1.0 s."""
+def _go2_on_a_patch(friction: float, start_s: float = 1.0):
+    """Go2 standing; its rear right foot's friction `friction` for 0.6 s from `start_s`."""
     go2 = model_scenario(GO2)
     geoms = dict(feet(load_model(GO2), go2.keyframe))["RR_calf"]
-    patch = Patch("RR_calf", 1.0, 0.6, (0.0, 0.0, 0.0), geoms, friction)
+    patch = Patch("RR_calf", start_s, 0.6, (0.0, 0.0, 0.0), geoms, friction)
     return replace(go2, pushes=lambda rng, duration: (patch,), condition="disturbances")
 
 
@@ -80,3 +86,33 @@ def test_a_slip_is_found_on_its_foot_sized_and_explains_the_residual_there(tmp_p
     assert event_message(e)["kind"] == KINDS[SLIP] == 3
     assert message(e).startswith("contact RR_calf–world slid ")
     json.dumps(written)
+
+
+def test_the_stream_reports_a_slip_online_while_it_lasts_and_again_when_it_ends(tmp_path):
+    """The patch after the online detectors' calibration (from 2.5 s), the log through
+    `Stream(diagnose=...)` with the node's settings: the slip is reported on the rear right
+    foot while it lasts, within 0.3 s of its start, then final, over the truth's interval
+    to 0.15 s; no other slip."""
+    log, config_path = tmp_path / "s.mcap", tmp_path / "s.toml"
+    scenario = _go2_on_a_patch(0.02, start_s=2.5)
+    simulate(scenario, log, seed=0, duration_s=3.6)
+    config_path.write_text(scenario_config(scenario, config_path))
+    config = load_config(config_path)
+    settings = replace(Settings.from_config(config), max_iterations=2, fit_softness="none")
+    stream = Stream(config, settings, lag_s=0.5, diagnose=DetectorSettings())
+    events: list[Event] = []
+    for raw in open_log(log):
+        stream.push(raw)
+        for update in stream.update(min_knots=25):
+            events += update.events
+    for update in stream.close():
+        events += update.events
+    (truth,) = [e for e in true_events(log) if e["kind"] == "slip"]
+    start_ns = T0_NS + round(truth["start_s"] * 1e9)
+    slid = [e for e in events if e.kind == SLIP]
+    assert [e.ongoing for e in slid] == [True, False]
+    first, final = slid
+    assert first.target == final.target == "RR_calf"
+    assert 0 <= first.detected_ns - start_ns <= 0.3e9
+    assert abs(final.start_ns - start_ns) <= 0.15e9
+    assert abs(final.end_ns - T0_NS - truth["end_s"] * 1e9) <= 0.15e9

@@ -35,7 +35,8 @@ touches>", force (1,) the distance its contact points slid over the interval (th
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import mujoco
 import numpy as np
@@ -43,6 +44,7 @@ from scipy.stats import chi2
 
 from estimator.contact_forces import contact_jacobian
 from estimator.diagnose.detect import DetectorSettings, Event, robust_mean_cov, runs
+from estimator.diagnose.online import CALIBRATE_S, HISTORY_S, RECALIBRATE_S
 from estimator.estimate import Estimate
 
 WINDOW_S = 0.1  # of the slide test
@@ -131,21 +133,17 @@ def slips(
     found = slides(model, est, weight)
     h, T = est.h, len(est.t_ns)
     L = max(2, round(WINDOW_S / h))
-    p = settings.false_alarms_per_min * WINDOW_S / 60.0 / max(len(found.pairs), 1)
-    threshold = float(chi2.isf(p, 2))
+    threshold = alarm_threshold(settings, len(found.pairs))
     out = []
     for j, pair in enumerate(found.pairs):
         touching = found.touching[:, j]
         if touching.sum() < 4 * L:
             continue
-        basis = _tangent_basis(np.median(found.normal[touching, j], axis=0))
-        slide = _windowed_sum(found.velocity[:, j] * h, touching, L, settings.causal) @ basis.T
-        ok = np.isfinite(slide).all(axis=1)
-        if ok.sum() < 10:
+        slide = _windowed_sum(found.velocity[:, j] * h, touching, L, settings.causal)
+        calibration = _calibrated(slide, found.normal[touching, j])
+        if calibration is None:
             continue
-        mean, cov = robust_mean_cov(slide[ok])
-        diff = slide - mean
-        d2 = np.einsum("ki,ij,kj->k", diff, np.linalg.inv(cov), diff)
+        d2 = calibration.d2(slide)
         speed = np.linalg.norm(found.velocity[:, j], axis=1)
         moving = touching & (speed > MOVING * np.median(speed[touching]))
         spans: list[list[int]] = []  # lo, hi, first alarm, last alarm
@@ -162,29 +160,237 @@ def slips(
             else:
                 spans.append([lo, hi, s, e])
         for lo, hi, s, e in spans:
-            span = np.arange(lo, hi + 1)
-            span = span[touching[span]]
-            path = float(speed[span].sum() * h)
-            slides_itself = found.sliding[span, j].mean() >= 0.5
-            held = found.friction[span, j].mean() < STICKING  # the model would have held it
-            if path < MIN_SLIDE_M or not (slides_itself and held) or not moving[span].any():
-                continue
-            span = span[moving[span]]  # from the first to the last moving knot
-            windows = (span[-1] - span[0] + 1) / L
-            out.append(
-                Event(
-                    kind=SLIP,
-                    start_ns=int(est.t_ns[span[0]]),
-                    end_ns=int(est.t_ns[span[-1]]),
-                    detected_ns=int(est.t_ns[s]),
-                    target=_name(model, pair),
-                    component=f"contact {_name(model, pair)}–{_body(model, pair[1])}",
-                    force=np.array([path]),
-                    force_cov=np.array([[np.trace(cov) * windows]]),
-                    score=float(np.nanmax(d2[s : e + 1])) / threshold,
-                )
+            knots = slice(lo, hi + 1)
+            slid = _slip(
+                est.t_ns[knots],
+                touching[knots],
+                speed[knots],
+                found.sliding[knots, j],
+                found.friction[knots, j],
+                moving[knots],
+                h,
             )
+            if slid is not None:
+                score = float(np.nanmax(d2[s : e + 1])) / threshold
+                out.append(_event(model, pair, slid, int(est.t_ns[s]), score, calibration, L))
     return sorted(out, key=lambda e: e.start_ns)
+
+
+def alarm_threshold(settings: DetectorSettings, pairs: int) -> float:
+    """χ²(2)'s quantile for the false-alarm rate, spread over the windows per minute and the
+    touching pairs (Bonferroni)."""
+    p = settings.false_alarms_per_min * WINDOW_S / 60.0 / max(pairs, 1)
+    return float(chi2.isf(p, 2))
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A pair's window slides where nothing happens: in its tangent plane (`basis`, (2, 3)),
+    their robust mean and covariance."""
+
+    basis: np.ndarray
+    mean: np.ndarray
+    cov: np.ndarray
+
+    def d2(self, slide: np.ndarray) -> np.ndarray:
+        """(…,) the Mahalanobis d² of window slides (…, 3), world frame (NaN stays NaN)."""
+        diff = slide @ self.basis.T - self.mean
+        return np.einsum("...i,ij,...j->...", diff, np.linalg.inv(self.cov), diff)
+
+
+def _calibrated(slide: np.ndarray, normals: np.ndarray) -> Calibration | None:
+    """The calibration from a pair's window slides (T, 3) (NaN: a window it hardly touched)
+    and its contacts' normals; None with too few windows."""
+    ok = np.isfinite(slide).all(axis=1)
+    if ok.sum() < 10:
+        return None
+    basis = _tangent_basis(np.median(normals, axis=0))
+    mean, cov = robust_mean_cov(slide[ok] @ basis.T)
+    return Calibration(basis, mean, cov)
+
+
+@dataclass(frozen=True)
+class _Slid:
+    start_ns: int
+    end_ns: int
+    path: float  # m
+    knots: int  # from the first to the last moving knot
+
+
+def _slip(
+    t_ns: np.ndarray,
+    touching: np.ndarray,
+    speed: np.ndarray,
+    sliding: np.ndarray,
+    friction: np.ndarray,
+    moving: np.ndarray,
+    h: float,
+) -> _Slid | None:
+    """Whether the knots of an alarm (arrays over them) are a slip (module docstring, 4)."""
+    path = float(speed[touching].sum() * h)
+    slides_itself = sliding[touching].mean() >= 0.5 if touching.any() else False
+    held = friction[touching].mean() < STICKING if touching.any() else False
+    if path < MIN_SLIDE_M or not (slides_itself and held) or not moving.any():
+        return None
+    first, last = np.flatnonzero(moving)[[0, -1]]  # from the first to the last moving knot
+    return _Slid(int(t_ns[first]), int(t_ns[last]), path, int(last - first + 1))
+
+
+def _event(
+    model: mujoco.MjModel,
+    pair: tuple[int, int],
+    slid: _Slid,
+    detected_ns: int,
+    score: float,
+    calibration: Calibration,
+    L: int,
+) -> Event:
+    name = _name(model, pair)
+    return Event(
+        kind=SLIP,
+        start_ns=slid.start_ns,
+        end_ns=slid.end_ns,
+        detected_ns=detected_ns,
+        target=name,
+        component=f"contact {name}–{_body(model, pair[1])}",
+        force=np.array([slid.path]),
+        force_cov=np.array([[np.trace(calibration.cov) * slid.knots / L]]),
+        score=score,
+    )
+
+
+class OnlineSlips:
+    """`slips` run causally on a stream's newest knots (`estimator.stream.Stream(diagnose=…)`):
+    per touching pair the slide over the window that ends at the knot, d² against a
+    calibration from the stream's own windows (after `CALIBRATE_S`, refitted every
+    `RECALIBRATE_S` on the last `HISTORY_S`), the batch threshold. An alarm is reported once
+    its knots so far pass the slip's checks (`Event.ongoing`), and again, final, when it has
+    been off for `JOIN_S`. model: the estimate's; weight: the robot's [N]; h: the knot step."""
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        weight: float,
+        h: float,
+        settings: DetectorSettings | None = None,
+    ) -> None:
+        self.model, self.weight, self.h = model, weight, h
+        self.settings = replace(settings or DetectorSettings(), causal=True)
+        self.data = mujoco.MjData(model)
+        self.L = max(2, round(WINDOW_S / h))
+        self.keep = round(HISTORY_S / h)
+        self.calibrate_after, self.recalibrate = round(CALIBRATE_S / h), round(RECALIBRATE_S / h)
+        self.join = round(JOIN_S / h)
+        self.t_ns: list[int] = []
+        self.rows: list[dict[tuple[int, int], np.ndarray]] = []  # per knot: `_knot`'s
+        self.slide: dict[tuple[int, int], list[np.ndarray]] = {}  # per pair and knot
+        self.calibration: dict[tuple[int, int], Calibration] = {}
+        self.threshold = np.inf
+        self.count, self.calibrated_at = 0, -1
+        self.alarms: dict[tuple[int, int], list] = {}  # pair → [first, last, reported_ns]
+
+    def add(self, est: Estimate, knots: Sequence[int]) -> list[Event]:
+        """The knots `knots` of `est` (consecutive, after the last ones added) in; the
+        events they report out."""
+        out = []
+        for k in knots:
+            if self.t_ns and est.t_ns[k] <= self.t_ns[-1]:
+                continue
+            self.data.qpos[:] = est.qpos[k]
+            mujoco.mj_kinematics(self.model, self.data)
+            mujoco.mj_comPos(self.model, self.data)
+            out += self._knot(int(est.t_ns[k]), _knot(self.model, self.data, est, k, self.weight))
+        return out
+
+    def close(self) -> list[Event]:
+        """The end of the stream: the open alarms' final reports."""
+        out = [e for pair, a in self.alarms.items() if (e := self._final(pair, *a))]
+        self.alarms = {}
+        return out
+
+    def _knot(self, t_ns: int, rows: dict[tuple[int, int], np.ndarray]) -> list[Event]:
+        self.t_ns.append(t_ns)
+        self.rows.append(rows)
+        self.count += 1
+        for pair in rows:
+            self.slide.setdefault(pair, [np.full(3, np.nan)] * (len(self.t_ns) - 1))
+        recent = self.rows[-self.L :]
+        for pair, buffer in self.slide.items():
+            touching = [r[pair][:3] for r in recent if pair in r]
+            full = len(recent) == self.L and len(touching) >= self.L / 2
+            buffer.append(np.sum(touching, axis=0) * self.h if full else np.full(3, np.nan))
+        if self.count >= self.calibrate_after and (
+            self.calibrated_at < 0 or self.count - self.calibrated_at >= self.recalibrate
+        ):
+            self._calibrate()
+        out = []
+        for pair, calibration in self.calibration.items():
+            d2 = float(np.nan_to_num(calibration.d2(self.slide[pair][-1])))
+            out += self._track(pair, d2 > self.threshold, d2)
+        self._trim()
+        return out
+
+    def _calibrate(self) -> None:
+        for pair, buffer in self.slide.items():
+            normals = [r[pair][3:6] for r in self.rows if pair in r]
+            if len(normals) >= 4 * self.L:
+                calibration = _calibrated(np.array(buffer), np.array(normals))
+                if calibration is not None:
+                    self.calibration[pair] = calibration
+        self.threshold = alarm_threshold(self.settings, len(self.slide))
+        self.calibrated_at = self.count
+
+    def _trim(self) -> None:
+        extra = len(self.t_ns) - self.keep
+        if extra > 0 and not self.alarms:
+            del self.t_ns[:extra], self.rows[:extra]
+            for buffer in self.slide.values():
+                del buffer[:extra]
+
+    def _track(self, pair: tuple[int, int], alarm: bool, d2: float) -> list[Event]:
+        k = len(self.t_ns) - 1
+        out = []
+        a = self.alarms.get(pair)
+        if a is not None and k - a[1] > self.join:  # the alarm is over
+            final = self._final(pair, *a)
+            out += [final] if final else []
+            del self.alarms[pair]
+            a = None
+        if alarm:
+            if a is None:
+                a = self.alarms[pair] = [k, k, None, d2]
+            a[1], a[3] = k, max(a[3], d2)
+            if a[2] is None and (event := self._event(pair, a[0], k, a[3])) is not None:
+                a[2] = self.t_ns[k]
+                out.append(replace(event, detected_ns=self.t_ns[k], ongoing=True))
+        return out
+
+    def _final(self, pair: tuple[int, int], s: int, e: int, reported: int | None, d2: float):
+        event = self._event(pair, s, e, d2)
+        if event is None:
+            return None
+        return replace(event, detected_ns=reported if reported is not None else self.t_ns[-1])
+
+    def _event(self, pair: tuple[int, int], s: int, e: int, d2: float) -> Event | None:
+        """The slip of the alarm s … e (buffer indices), if it is one, from the window
+        before it on (and the knots before where the contact was already moving)."""
+        rows = np.array([r[pair] if pair in r else np.full(8, np.nan) for r in self.rows])
+        touching = np.isfinite(rows[:, 0])
+        speed = np.where(touching, np.linalg.norm(np.nan_to_num(rows[:, :3]), axis=1), 0.0)
+        moving = touching & (speed > MOVING * np.median(speed[touching]))
+        lo = max(0, s - self.L + 1)
+        while lo > 0 and moving[lo - 1]:
+            lo -= 1
+        knots = slice(lo, e + 1)
+        sliding, friction = np.nan_to_num(rows[knots, 6]), np.nan_to_num(rows[knots, 7])
+        t_ns = np.array(self.t_ns[knots])
+        slid = _slip(t_ns, touching[knots], speed[knots], sliding, friction, moving[knots], self.h)
+        if slid is None:
+            return None
+        calibration = self.calibration[pair]
+        return _event(
+            self.model, pair, slid, self.t_ns[e], d2 / self.threshold, calibration, self.L
+        )
 
 
 def _windowed_sum(x: np.ndarray, ok: np.ndarray, L: int, causal: bool) -> np.ndarray:

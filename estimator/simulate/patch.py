@@ -130,8 +130,8 @@ class Patches:
     def events(self, h: float, names: Sequence[str]) -> list[dict[str, Any]]:
         """One truth record per patch the foot slid on (module docstring): kind "slip",
         body, start_s/end_s (first sliding step, after the last), distance_m (the fastest
-        contact point's path from the one to the other, every touching step), peak_mps, friction (the patch's), and the
-        patch's own interval (`patch_s`)."""
+        contact point's path from the one to the other, every touching step), peak_mps,
+        friction (the patch's), and the patch's own interval (`patch_s`)."""
         out = []
         steps = np.array([t[0] for t in self.touches], dtype=int)
         which = np.array([t[1] for t in self.touches], dtype=int)
