@@ -12,7 +12,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from diagnosed import diagnosed
+from diagnosed import diagnosed, streamed
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
@@ -28,7 +28,6 @@ from estimator.diagnose.score import score, true_events
 from estimator.diagnose.sensor_faults import isolated
 from estimator.diagnose.unmodeled import UnmodeledForces
 from estimator.io.logs import read_log
-from estimator.io.logs.source import open_log
 from estimator.io.rerun import write_recording
 from estimator.settings import Settings
 from estimator.simulate import simulate
@@ -37,7 +36,6 @@ from estimator.simulate.model_scenario import model_scenario
 from estimator.simulate.obstacle import Collision
 from estimator.simulate.patch import Patch
 from estimator.simulate.simulation import T0_NS
-from estimator.stream import Stream
 from physics.dynamics import make_dynamics
 from physics.model import weight
 
@@ -317,15 +315,7 @@ def test_the_stream_reports_a_push_online_while_it_lasts_and_again_when_it_ends(
         meta = next(r for r in make_reader(f).iter_metadata() if r.name == "physfuse.simulation")
     pushes = json.loads(meta.metadata["pushes"])
     push = next(p for p in pushes if p["start_s"] > CALIBRATE_S)
-    settings = replace(Settings.from_config(config), max_iterations=2, fit_softness="none")
-    stream = Stream(config, settings, lag_s=0.5, diagnose=DetectorSettings())
-    events: list[Event] = []
-    for raw in open_log(log):
-        stream.push(raw)
-        for update in stream.update(min_knots=10):
-            events += update.events
-    for update in stream.close():
-        events += update.events
+    stream, events = streamed(config, log, min_knots=10)
     assert stream.lag is not None
     start_ns = stream.lag.t0_ns + round(push["start_s"] * NS)
     assert [e.ongoing for e in events] == [True, False]

@@ -11,20 +11,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from diagnosed import diagnosed
+from diagnosed import diagnosed, streamed
 
 from estimator.config import load_config
-from estimator.diagnose import DetectorSettings, Event
 from estimator.diagnose.report import KINDS, event_dict, event_message, message
 from estimator.diagnose.score import true_events
 from estimator.diagnose.slip import SLIP, STICKING, slides
-from estimator.io.logs.source import open_log
-from estimator.settings import Settings
 from estimator.simulate import simulate
 from estimator.simulate.model_scenario import model_scenario
 from estimator.simulate.patch import Patch, feet
 from estimator.simulate.simulation import T0_NS, scenario_config
-from estimator.stream import Stream
 from physics.model import load_model, weight
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -98,15 +94,7 @@ def test_the_stream_reports_a_slip_online_while_it_lasts_and_again_when_it_ends(
     simulate(scenario, log, seed=0, duration_s=3.6)
     config_path.write_text(scenario_config(scenario, config_path))
     config = load_config(config_path)
-    settings = replace(Settings.from_config(config), max_iterations=2, fit_softness="none")
-    stream = Stream(config, settings, lag_s=0.5, diagnose=DetectorSettings())
-    events: list[Event] = []
-    for raw in open_log(log):
-        stream.push(raw)
-        for update in stream.update(min_knots=25):
-            events += update.events
-    for update in stream.close():
-        events += update.events
+    _, events = streamed(config, log, min_knots=25)
     (truth,) = [e for e in true_events(log) if e["kind"] == "slip"]
     start_ns = T0_NS + round(truth["start_s"] * 1e9)
     slid = [e for e in events if e.kind == SLIP]
