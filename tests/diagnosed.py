@@ -18,11 +18,13 @@ from estimator.simulate.simulation import scenario_config
 from estimator.stream import Stream
 
 
-def diagnosed(scenario: Any, tmp_path: Path, duration_s: float, seed: int = 0):
-    """(config, log path, measurements, estimate, diagnosis) of `scenario`'s log."""
+def diagnosed(scenario: Any, tmp_path: Path, duration_s: float, seed: int = 0, estimator: str = ""):
+    """(config, log path, measurements, estimate, diagnosis) of `scenario`'s log; `estimator`:
+    lines of the config's [estimator] table."""
     log, config_path = tmp_path / "d.mcap", tmp_path / "d.toml"
     simulate(scenario, log, seed=seed, duration_s=duration_s)
-    config_path.write_text(scenario_config(scenario, config_path))
+    table = f"\n[estimator]\n{estimator}\n" if estimator else ""
+    config_path.write_text(scenario_config(scenario, config_path) + table)
     config = load_config(config_path)
     measurements = read_log(log, config).measurements
     settings = Settings.from_config(config)

@@ -1,9 +1,10 @@
 """`physfuse diagnose LOG --config CONFIG --out DIR`: where and when the physics does not add up.
 
 Estimates the log (the config's settings, as `physfuse estimate`), then finds unmodeled
-contacts (pushes, collisions: body, interval, force ± σ) and sensor faults (a stream's residual
-row that steps) in the estimate (estimator/diagnose). Prints the events as a table and writes,
-whole or not at all:
+contacts (pushes, collisions: body, interval, force ± σ), contact model errors, slips (a
+contact sliding where the model's friction holds it: the distance slid) and sensor faults (a
+stream's residual row that steps) in the estimate (estimator/diagnose). Prints the events as a
+table and writes, whole or not at all:
 
     DIR/events.json       every event, the detector's settings and each body's calibration
     DIR/diagnostics.mcap  the estimate's topics (`physfuse estimate`'s layout) plus

@@ -108,7 +108,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--diagnose",
         action="store_true",
-        help="detect unmodeled contacts online on the newest knots (docs/diagnostics.md): each "
+        help="detect unmodeled contacts and slips online on the newest knots "
+        "(docs/diagnostics.md): each "
         "event reported when confirmed and again, final, when it ends, on /diagnostics and "
         "/diagnostics/events and in the terminal",
     )

@@ -9,6 +9,7 @@ from estimator.config import Config
 from estimator.diagnose.contact_model import contact_force_errors, contact_model_errors
 from estimator.diagnose.contact_point import contact_points
 from estimator.diagnose.detect import Detection, DetectorSettings, Event, detect
+from estimator.diagnose.model_errors import mass_errors
 from estimator.diagnose.sensor_faults import ONE_FAULT_S, sensor_faults
 from estimator.diagnose.slip import slips
 from estimator.diagnose.unmodeled import UnmodeledForces, unmodeled_forces
@@ -25,7 +26,8 @@ class Diagnosis:
     the unmodeled contacts (on the body and point that best explain them, `contact_point`),
     those a modeled contact explains as its "model error" (its normal force off, or its
     whole force where the event acts at it: `contact_model`), the slips (`slip`), the sensor
-    faults —, the contacts a sensor fault or a slip explains marked `explained_by` it."""
+    faults, a body's mass off (`model_errors`) —, the contacts a sensor fault or a slip
+    explains marked `explained_by` it."""
 
     forces: UnmodeledForces
     detection: Detection
@@ -55,7 +57,9 @@ def diagnose(
     contacts = contact_force_errors(model, est, located)
     slid = slips(model, est, weight(model), detector)
     faults = sensor_faults(est, detector)
-    return Diagnosis(forces, detection, explained(on_slips(contacts, slid) + slid, faults))
+    events = explained(on_slips(contacts, slid) + slid, faults)
+    masses = mass_errors(model, est, forces, events, detector)
+    return Diagnosis(forces, detection, sorted(masses + events, key=lambda e: e.start_ns))
 
 
 def on_slips(contacts: list[Event], slid: list[Event]) -> list[Event]:

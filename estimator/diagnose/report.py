@@ -59,6 +59,10 @@ def event_dict(e: Event, t0_ns: int) -> dict[str, Any]:
         out["contact_force_error_std_n"] = np.sqrt(np.diag(e.force_cov)).tolist()
         if e.point is not None:
             out["contact_point_m"] = e.point.tolist()
+    elif e.kind == MODEL_ERROR and e.component == "mass":
+        out["component"] = e.component
+        out["mass_error_kg"] = float(e.force[0])
+        out["mass_error_std_kg"] = float(np.sqrt(e.force_cov[0, 0]))
     elif e.kind == MODEL_ERROR:
         out["component"] = e.component
         out["normal_force_error_n"] = float(e.force[0])
@@ -109,6 +113,9 @@ def table(diagnosis: Diagnosis, t0_ns: int) -> str:
             where = e.target
         elif e.kind == MODEL_ERROR and len(e.force) == 3:
             size = f"force {e.magnitude:.1f} ± {e.magnitude_std:.1f} N"
+            where = e.target
+        elif e.kind == MODEL_ERROR and e.component == "mass":
+            size = f"mass {e.force[0]:+.2f} ± {np.sqrt(e.force_cov[0, 0]):.2f} kg"
             where = e.target
         elif e.kind == MODEL_ERROR:
             size = f"normal {e.force[0]:+.1f} ± {np.sqrt(e.force_cov[0, 0]):.1f} N"
@@ -189,6 +196,8 @@ def message(e: Event) -> str:
         text = f"{e.magnitude:.0f} N on {e.target}"
     elif e.kind == MODEL_ERROR and len(e.force) == 3:
         text = f"{e.target}: the model's contact force is off by {e.magnitude:.0f} N"
+    elif e.kind == MODEL_ERROR and e.component == "mass":
+        text = f"{e.target}: the model's mass is off by {e.force[0]:+.2f} kg"
     elif e.kind == MODEL_ERROR:
         text = f"{e.target}: the model's normal force is off by {e.force[0]:+.1f} N"
     elif e.kind == SLIP:

@@ -23,9 +23,10 @@ On top of `nominal` (the scenario's own pushes replaced):
                   ±0.02 rad (±5 mm on a slide) at a uniform time in 85–95% of the log and
                   stays.
 
-A push the robot cannot withstand is left out: the run is repeated without the last push
-before the robot's root fell below `FALLEN` of its starting height, until it stays up (a
-robot on the floor is all contact, and a fall is not what the diagnostics are tested on).
+A push (or a patch) the robot cannot withstand is left out: the run is repeated without the
+last one that started before the robot's root fell below `FALLEN` of its starting height,
+until it stays up (a robot on the floor is all contact, and a fall is not what the
+diagnostics are tested on).
 The sensor faults come after the pushes: an estimate that takes in a faulty sensor is off
 from then on, and the pushes are to be found on an estimate as good as the sensors allow.
 

@@ -117,7 +117,8 @@ uint8 UNMODELED_CONTACT=0   # a force on `target` (a body) that actuation and th
                             # contacts do not explain: a push, a collision
 uint8 MODEL_ERROR=1         # a modeled contact's force off: its normal force (softness,
                             # stiffness or the surface's height; size 1 value) or its whole
-                            # force (timing, friction; size 3); target "contact <body>–<geom>"
+                            # force (timing, friction; size 3); target "contact <body>–<geom>";
+                            # or a body's mass (component "mass", target the body, size 1)
 uint8 SENSOR_FAULT=2        # a stream's residual row that steps; target the stream,
                             # component the row ("gyro z", "FR_hip_joint position")
 uint8 SLIP=3                # a modeled contact sliding where the model would hold it (less
@@ -132,10 +133,10 @@ string target
 string component
 float64[] size                          # UNMODELED_CONTACT: the force on the target, world
                                         # frame [N] (3 values); MODEL_ERROR: the
-                                        # normal force error [N] (1) or the contact force's,
-                                        # world frame (3); SENSOR_FAULT: the step in
-                                        # σ of its row (1); SLIP: the distance its
-                                        # contact slid [m] (1)
+                                        # normal force error [N] (1), the contact force's,
+                                        # world frame (3), or the mass error [kg] (1);
+                                        # SENSOR_FAULT: the step in σ of its row (1);
+                                        # SLIP: the distance its contact slid [m] (1)
 float64[] size_covariance               # of size, row-major (len(size)² values)
 float64 score                           # the peak statistic over its threshold (> 1)
 string explained_by                     # the sensor fault or slip that explains it
