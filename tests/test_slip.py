@@ -9,6 +9,7 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
+import mujoco
 import numpy as np
 import pytest
 from diagnosed import diagnosed, streamed
@@ -17,6 +18,8 @@ from estimator.config import load_config
 from estimator.diagnose.report import KINDS, event_dict, event_message, message
 from estimator.diagnose.score import true_events
 from estimator.diagnose.slip import SLIP, STICKING, slides
+from estimator.io.logs import read_log
+from estimator.io.rerun import write_recording
 from estimator.simulate import simulate
 from estimator.simulate.model_scenario import model_scenario
 from estimator.simulate.patch import Patch, feet
@@ -60,7 +63,7 @@ def test_a_slip_is_found_on_its_foot_sized_and_explains_the_residual_there(tmp_p
     rear right foot, over the truth's interval, its distance within 30% of the truth's;
     what the physics residual shows on that foot meanwhile is explained by it; the other
     feet, which slide a little with the model's own friction, are no slip; events.json and
-    /diagnostics/events carry it."""
+    /diagnostics/events carry it; Rerun draws the foot's path over it."""
     config, log, _, est, diagnosis = diagnosed(_go2_on_a_patch(0.02), tmp_path, 2.5)
     (truth,) = [e for e in true_events(log) if e["kind"] == "slip"]
     (e,) = [e for e in diagnosis.events if e.kind == SLIP]
@@ -82,6 +85,21 @@ def test_a_slip_is_found_on_its_foot_sized_and_explains_the_residual_there(tmp_p
     assert event_message(e)["kind"] == KINDS[SLIP] == 3
     assert message(e).startswith("contact RR_calf–world slid ")
     json.dumps(written)
+    # Rerun: the foot's path over the slip, from its start, cleared at its end
+    from test_visualize import read_recording
+
+    read = read_log(log, config)
+    drawn = write_recording(est, model, read, path=tmp_path / "d.rrd", diagnosis=diagnosis)
+    path = read_recording(drawn)["/world/diagnostics/slip/RR_calf"]
+    t0 = min(int(est.t_ns[0]), *(int(m.t_ns[0]) for m in read.measurements.values()))
+    assert path.time_ns == [e.start_ns - t0, e.end_ns - t0]
+    (strip,) = path.rows["LineStrips3D:strips"][0]
+    data = mujoco.MjData(model)
+    data.qpos[:] = est.qpos[np.searchsorted(est.t_ns, e.end_ns)]
+    mujoco.mj_kinematics(model, data)
+    np.testing.assert_allclose(strip[-1], data.xpos[model.body("RR_calf").id], atol=1e-6)
+    assert path.rows["LineStrips3D:labels"] == [[f"slip {100 * e.force[0]:.1f} cm"], []]
+    assert path.rows["LineStrips3D:strips"][1] == []  # gone at the slip's end
 
 
 def test_the_stream_reports_a_slip_online_while_it_lasts_and_again_when_it_ends(tmp_path):

@@ -61,6 +61,7 @@ import rerun.blueprint as rrb
 from estimator.diagnose.detect import Event
 from estimator.diagnose.diagnosis import Diagnosis
 from estimator.diagnose.report import message
+from estimator.diagnose.slip import SLIP
 from estimator.errors import PhysfuseError
 from estimator.estimate import Estimate
 from estimator.io.logs.reader import Log
@@ -528,7 +529,8 @@ def _log_diagnosis(
     diagnosis: Diagnosis,
     t0_ns: int,
 ) -> None:
-    """The events as text, unmodeled contacts as arrows, the detector's statistic as plots."""
+    """The events as text, unmodeled contacts as arrows, slips as their paths, the detector's
+    statistic as plots."""
     det = diagnosis.detection
     knots = estimate.t_ns - np.int64(t0_ns)
     for e in diagnosis.events:
@@ -583,6 +585,42 @@ def _log_diagnosis(
             rr.Arrows3D.from_fields(radii=0.015, colors=[(192, 57, 43)]),
             static=True,
         )
+    _log_slips(rec, model, estimate, diagnosis, t0_ns)
+
+
+def _log_slips(
+    rec: rr.RecordingStream,
+    model: mujoco.MjModel,
+    estimate: Estimate,
+    diagnosis: Diagnosis,
+    t0_ns: int,
+) -> None:
+    """Each slip as the path its body's origin takes over it (orange), shown from the slip's
+    start to its end."""
+    d = mujoco.MjData(model)
+    for e in diagnosis.events:
+        b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, e.target)
+        if e.kind != SLIP or b < 0:
+            continue
+        path = []
+        for k in np.flatnonzero((estimate.t_ns >= e.start_ns) & (estimate.t_ns <= e.end_ns)):
+            d.qpos[:] = estimate.qpos[k]
+            mujoco.mj_kinematics(model, d)
+            path.append(d.xpos[b].copy())
+        entity = f"world/diagnostics/slip/{_body_name(model, b, escape=True)}"
+        rec.set_time("time", duration=np.timedelta64(e.start_ns - t0_ns, "ns"))
+        rec.log(
+            entity,
+            rr.LineStrips3D(
+                [np.reshape(path, (-1, 3))],
+                radii=0.006,
+                colors=[(230, 126, 34)],
+                labels=[f"slip {100 * e.force[0]:.1f} cm"],
+            ),
+        )
+        rec.set_time("time", duration=np.timedelta64(e.end_ns - t0_ns, "ns"))
+        rec.log(entity, rr.LineStrips3D([], radii=[], colors=[], labels=[]))  # gone
+    rec.reset_time()
 
 
 def _log_geoms(rec: rr.RecordingStream, model: mujoco.MjModel) -> None:
