@@ -15,6 +15,8 @@ import pytest
 from diagnosed import diagnosed, streamed
 
 from estimator.config import load_config
+from estimator.diagnose import Event
+from estimator.diagnose.diagnosis import on_slips
 from estimator.diagnose.report import KINDS, event_dict, event_message, message
 from estimator.diagnose.score import true_events
 from estimator.diagnose.slip import SLIP, STICKING, slides
@@ -122,3 +124,23 @@ def test_the_stream_reports_a_slip_online_while_it_lasts_and_again_when_it_ends(
     assert 0 <= first.detected_ns - start_ns <= 0.3e9
     assert abs(final.start_ns - start_ns) <= 0.15e9
     assert abs(final.end_ns - T0_NS - truth["end_s"] * 1e9) <= 0.15e9
+
+
+def test_a_slip_explains_what_the_residual_shows_on_its_body_and_the_next_across_a_joint():
+    """Go2: a slip of RR_calf explains an unmodeled contact on RR_calf or RR_thigh (its
+    parent) that overlaps it, not one on FL_calf, nor one on RR_thigh after it."""
+    model = load_model(GO2)
+
+    def event(kind: str, target: str, start_s: float, end_s: float) -> Event:
+        ns = round(start_s * 1e9), round(end_s * 1e9)
+        return Event(kind, *ns, ns[0], target, np.zeros(3), np.eye(3), 2.0)
+
+    slip = event(SLIP, "RR_calf", 1.0, 1.5)
+    contacts = [
+        event("unmodeled contact", "RR_thigh", 1.2, 1.3),
+        event("model error", "contact RR_calf–floor", 1.4, 1.6),
+        event("unmodeled contact", "FL_calf", 1.2, 1.3),
+        event("unmodeled contact", "RR_thigh", 1.6, 1.7),
+    ]
+    marked = [e.explained_by for e in on_slips(model, contacts, [slip])]
+    assert marked == ["slip RR_calf", "slip RR_calf", "", ""]
