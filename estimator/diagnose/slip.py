@@ -285,6 +285,7 @@ class OnlineSlips:
         self.rows: list[dict[tuple[int, int], np.ndarray]] = []  # per knot: `_knot`'s
         self.slide: dict[tuple[int, int], list[np.ndarray]] = {}  # per pair and knot
         self.calibration: dict[tuple[int, int], Calibration] = {}
+        self.moving_mps: dict[tuple[int, int], float] = {}  # faster: the contact moves
         self.threshold = np.inf
         self.count, self.calibrated_at = 0, -1
         self.alarms: dict[tuple[int, int], list] = {}  # pair → [first, last, reported_ns]
@@ -332,11 +333,13 @@ class OnlineSlips:
 
     def _calibrate(self) -> None:
         for pair, buffer in self.slide.items():
-            normals = [r[pair][3:6] for r in self.rows if pair in r]
-            if len(normals) >= 4 * self.L:
-                calibration = _calibrated(np.array(buffer), np.array(normals))
+            touching = np.array([r[pair] for r in self.rows if pair in r])
+            if len(touching) >= 4 * self.L:
+                calibration = _calibrated(np.array(buffer), touching[:, 3:6])
                 if calibration is not None:
                     self.calibration[pair] = calibration
+                    speed = np.linalg.norm(touching[:, :3], axis=1)
+                    self.moving_mps[pair] = MOVING * float(np.median(speed))
         self.threshold = alarm_threshold(self.settings, len(self.slide))
         self.calibrated_at = self.count
 
@@ -374,17 +377,21 @@ class OnlineSlips:
     def _event(self, pair: tuple[int, int], s: int, e: int, d2: float) -> Event | None:
         """The slip of the alarm s … e (buffer indices), if it is one, from the window
         before it on (and the knots before where the contact was already moving)."""
-        rows = np.array([r[pair] if pair in r else np.full(8, np.nan) for r in self.rows])
+        fast = self.moving_mps[pair]
+
+        def moving(i: int) -> bool:
+            row = self.rows[i].get(pair)
+            return row is not None and float(np.linalg.norm(row[:3])) > fast
+
+        lo = max(0, s - self.L + 1)
+        while lo > 0 and moving(lo - 1):
+            lo -= 1
+        rows = np.array([r.get(pair, np.full(8, np.nan)) for r in self.rows[lo : e + 1]])
         touching = np.isfinite(rows[:, 0])
         speed = np.where(touching, np.linalg.norm(np.nan_to_num(rows[:, :3]), axis=1), 0.0)
-        moving = touching & (speed > MOVING * np.median(speed[touching]))
-        lo = max(0, s - self.L + 1)
-        while lo > 0 and moving[lo - 1]:
-            lo -= 1
-        knots = slice(lo, e + 1)
-        sliding, friction = np.nan_to_num(rows[knots, 6]), np.nan_to_num(rows[knots, 7])
-        t_ns = np.array(self.t_ns[knots])
-        slid = _slip(t_ns, touching[knots], speed[knots], sliding, friction, moving[knots], self.h)
+        sliding, friction = np.nan_to_num(rows[:, 6]), np.nan_to_num(rows[:, 7])
+        t_ns = np.array(self.t_ns[lo : e + 1])
+        slid = _slip(t_ns, touching, speed, sliding, friction, touching & (speed > fast), self.h)
         if slid is None:
             return None
         calibration = self.calibration[pair]
