@@ -21,10 +21,11 @@ hand, link7's and link6's fits explain the residual within 0.5% as well).
 
 On an arm every joint's torque is known and the fit is sharp (Panda, 3 s at 2 ms knots, 0.5
 kg in its hand: +0.49 ± 0.07 kg; `tests/test_model_errors.py`). On a robot standing on soft
-contacts it is not: the estimate's feet sink a little deeper and the model's contacts carry
-the extra weight, and what is left the residual allows the contact forces' σ_f for (Go2 with
-2 kg on its base, 3 s: +1.1 ± 0.46 kg, not reported; 10 s with the condition's 5% errors:
-σ 0.22–0.34 kg per body, the humanoid's legs and trunk 1.7–3.4 kg).
+contacts it is coarse: the estimate's feet sink a little deeper and the model's contacts
+carry part of the extra weight, and what is left the residual allows the contact forces' σ_f
+for (Go2 with 2 kg on its base, 3 s: +1.1 ± 0.46 kg, not reported; 10 s with the condition's
+5% errors: σ 0.22–0.34 kg per body, the humanoid's legs and trunk 1.7–3.4 kg; H1's torso
+1.95 kg light: the pelvis's −2.25 ± 0.49 kg, the torso second).
 """
 
 from __future__ import annotations

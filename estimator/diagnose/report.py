@@ -63,6 +63,7 @@ def event_dict(e: Event, t0_ns: int) -> dict[str, Any]:
         out["component"] = e.component
         out["mass_error_kg"] = float(e.force[0])
         out["mass_error_std_kg"] = float(np.sqrt(e.force_cov[0, 0]))
+        out["candidates"] = dict(sorted(e.candidates.items(), key=lambda kv: -kv[1])[:3])
     elif e.kind == MODEL_ERROR:
         out["component"] = e.component
         out["normal_force_error_n"] = float(e.force[0])
