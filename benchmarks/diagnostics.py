@@ -15,7 +15,9 @@ as the simulation measured it) of at least 30 N for at least 0.1 s are counted a
 target: recall ≥ 95%, isolation ≥ 90%, force error ≤ 20% at ≤ 1 false alarm per minute).
 Slips (a foot on a low-friction patch, `estimator/simulate/patch.py`; as measured): recall,
 isolation (the foot), the distance slid's error in the ‖F‖ columns, slips reported where
-none happened per minute.
+none happened per minute. A body's mass off ("mass error (reported)": n reported, the
+isolation column the share right against the simulation's mismatch — the body or one of its
+candidates off in that direction within 3σ —, false/min the wrong ones).
 Prints a table and writes DIR/diagnostics.json.
 
 --online: the same log also through the streaming estimator with its online detector
@@ -39,6 +41,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from mcap.reader import make_reader
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -119,7 +122,9 @@ def run(name: str, seed: int, duration: float, work: Path, online: bool = False)
                 "score": e.score,
             }
             for e in result.false_alarms
+            if e.component != "mass"
         ],
+        "masses": _masses(diagnosis.events, log_path),
     }
     start = time.perf_counter()
     _, _, observed = observer_diagnosis(config, log.measurements, settings)
@@ -183,6 +188,35 @@ def streamed(config, log_path: Path, duration: float) -> dict:
     }
 
 
+def _masses(events: list, log_path: Path) -> list[dict]:
+    """Each mass error reported against the simulation's (the `physfuse.mismatch` record):
+    right when its target or one of its candidates is off in the same direction by an amount
+    within 3σ of the one reported."""
+    with open(log_path, "rb") as f:
+        records = {r.name: r.metadata for r in make_reader(f).iter_metadata()}
+    masses = json.loads(records.get("physfuse.mismatch", {}).get("body_mass", "{}"))
+    true = {b: m[1] - m[0] for b, m in masses.items()}
+    out = []
+    for e in events:
+        if e.component != "mass":
+            continue
+        kg, std = float(e.force[0]), float(np.sqrt(e.force_cov[0, 0]))
+        bodies = [e.target, *(b for b in e.candidates if b != e.target)]
+        out.append(
+            {
+                "body": e.target,
+                "kg": kg,
+                "std_kg": std,
+                "true_kg": {b: true.get(b, 0.0) for b in bodies},
+                "right": any(
+                    true.get(b, 0.0) * kg > 0 and abs(true.get(b, 0.0) - kg) <= 3 * std
+                    for b in bodies
+                ),
+            }
+        )
+    return out
+
+
 def _matched(m: Matched) -> dict:
     t = m.truth
     force = float(np.linalg.norm(t["force_n"])) if "force_n" in t else None
@@ -243,6 +277,12 @@ def summarize(runs: list[dict]) -> list[dict]:
         # none is simulated (the logs' model errors are the condition's mismatch of masses,
         # inertias, friction and softness): what `diagnose` names a contact's model error
         rows.append(_row(name, "model error (reported)", [], alarms["model error"], minutes))
+        # a body's mass: reported (n), right (isolation column), wrong per minute
+        masses = [m for r in mine for m in r.get("masses", [])]
+        wrong = sum(not m["right"] for m in masses)
+        rows.append(_row(name, "mass error (reported)", [], wrong, minutes))
+        rows[-1]["count"] = len(masses)
+        rows[-1]["isolation"] = sum(m["right"] for m in masses) / len(masses) if masses else None
     return rows
 
 
