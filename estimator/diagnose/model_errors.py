@@ -12,12 +12,13 @@ over the knots outside every event found (a push is not a mass), before the firs
 fault (the estimate is off after it) and not outliers (`detect.outliers`). The residuals of
 a smoother are correlated in time, so δ̂'s σ is taken from the spread of the estimates over
 blocks of `BLOCK_S` (batch means), at least Σ wᵀIw's. A body with |δ̂| / σ beyond the
-two-sided Gaussian quantile for the false-alarm rate (the rate × the log's minutes, spread over
-the bodies) is off; of those, the one whose error explains the residual best (its likelihood
-ratio δ̂² Σ wᵀIw) is the log's "model error": target the body, component "mass", size δ̂ [kg]
-± σ (positive: heavier than the model says — a payload), the others as its candidates
-(bodies next to it on a chain give nearly the same gravity torques: Panda with 0.5 kg on its
-hand, link7's and link6's fits explain the residual within 0.5% as well).
+two-sided Gaussian quantile for the false-alarm rate (the rate × the log's minutes, at most
+one, spread over the bodies) is off; of those, the one whose error explains the residual
+best (its likelihood ratio δ̂² Σ wᵀIw) is the log's "model error": target the body,
+component "mass", size δ̂ [kg] ± σ (positive: heavier than the model says — a payload), the
+others as its candidates (bodies next to it on a chain give nearly the same gravity torques:
+Panda with 0.5 kg on its hand, link7's and link6's fits explain the residual within 0.5% as
+well).
 
 On an arm every joint's torque is known and the fit is sharp (Panda, 3 s at 2 ms knots, 0.5
 kg in its hand: +0.49 ± 0.07 kg; `tests/test_model_errors.py`). On a robot standing on soft
@@ -61,7 +62,9 @@ def mass_errors(
     blocks = np.arange(T) // max(1, round(BLOCK_S / h))
     if len(np.unique(blocks[used])) < MIN_BLOCKS:
         return []
-    minutes = (est.t_ns[-1] - est.t_ns[0]) / 60e9
+    # one test per body and log: at the rate's probability for a minute of log at most (an
+    # hour-long log is not allowed sixty)
+    minutes = min((est.t_ns[-1] - est.t_ns[0]) / 60e9, 1.0)
     p = min(settings.false_alarms_per_min * minutes / max(B, 1), 1.0)
     threshold = float(norm.isf(p / 2.0))
     com = _centres_of_mass(model, est)
