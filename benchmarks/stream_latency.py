@@ -2,7 +2,7 @@
 through a real TCP socket (`physfuse replay` → `physfuse stream`, two processes on loopback).
 
     .venv/bin/python benchmarks/stream_latency.py [--recordings humanoid_push quadruped_trot]
-        [--lag 0.5] [--iterations 2 ...] [--out DIR]
+        [--lag 0.5] [--iterations 2 ...] [--relinearize 0.04 0 ...] [--out DIR]
 
 Per recording: the update latency (from the arrival of the sample that made a knot ready to
 the publication of its newest estimate) p50 / p99 / max; the backlog (knots ready and not yet
@@ -39,15 +39,18 @@ from estimator.io.logs import read_log  # noqa: E402
 from estimator.io.mcap_writer import EstimateWriter  # noqa: E402
 from estimator.io.state_topics import read_state_topics  # noqa: E402
 from estimator.settings import Settings  # noqa: E402
+from estimator.solver.incremental import RELINEARIZE_S  # noqa: E402
 
 PHYSFUSE = [sys.executable, "-m", "estimator.cli"]
 METRICS = ("position_mm", "orientation_deg", "joint_deg", "linear_velocity_mps")
 
 
-def streamed(name: str, rate: float, lag: float, iterations: int, work: Path) -> dict:
+def streamed(
+    name: str, rate: float, lag: float, iterations: int, relinearize: float, work: Path
+) -> dict:
     """One replay → stream run: the node's --stats and its output file."""
     log, config = ROOT / "recordings" / f"{name}.mcap", ROOT / "configs" / f"{name}.toml"
-    tag = f"{name}_{rate:g}_{iterations}"
+    tag = f"{name}_{rate:g}_{iterations}_{relinearize:g}"
     out, stats = work / f"{tag}.mcap", work / f"{tag}.json"
     replay = subprocess.Popen(
         [*PHYSFUSE, "replay", str(log), "--to", "tcp://127.0.0.1:0", "--rate", str(rate)],
@@ -73,6 +76,8 @@ def streamed(name: str, rate: float, lag: float, iterations: int, work: Path) ->
             str(lag),
             "--iterations",
             str(iterations),
+            "--relinearize",
+            str(relinearize),
             "--quiet",
         ],
         cwd=ROOT,
@@ -122,6 +127,13 @@ def main() -> None:
         default=[2],
         help="the node's Levenberg–Marquardt iterations per update; several: a row each",
     )
+    parser.add_argument(
+        "--relinearize",
+        type=float,
+        nargs="+",
+        default=[RELINEARIZE_S],
+        help="the node's --relinearize, s (0: whole-window updates); several: a row each",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "out" / "stream_latency")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -129,9 +141,12 @@ def main() -> None:
     batches: dict[str, dict[str, float]] = {}  # one batch estimate per recording
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
-        for name, iterations in [(n, i) for n in args.recordings for i in args.iterations]:
-            live = streamed(name, 1.0, args.lag, iterations, work)
-            fast = streamed(name, 0.0, args.lag, iterations, work)
+        runs = [
+            (n, i, r) for n in args.recordings for i in args.iterations for r in args.relinearize
+        ]
+        for name, iterations, relinearize in runs:
+            live = streamed(name, 1.0, args.lag, iterations, relinearize, work)
+            fast = streamed(name, 0.0, args.lag, iterations, relinearize, work)
             s = live["stats"]
             lat = np.array(s["latency_s"]) * 1e3
             first, last = thirds(s["backlog"])
@@ -141,6 +156,7 @@ def main() -> None:
                 {
                     "recording": name,
                     "iterations": iterations,
+                    "relinearize_s": relinearize,
                     "knot_ms": s["knot_s"] * 1e3,
                     "knots": s["counts"]["knots_newest"],
                     "updates": s["counts"]["updates"],
@@ -161,9 +177,12 @@ def main() -> None:
                     "late": s["counts"]["late"],
                 }
             )
-            print(f"{name}, {iterations} iteration(s): done", file=sys.stderr)
+            print(
+                f"{name}, {iterations} iteration(s), relinearize {relinearize:g} s: done",
+                file=sys.stderr,
+            )
     print(
-        f"{'recording':15s} {'it':>2s} {'knot':>5s} {'p50 ms':>7s} {'p99 ms':>7s} "
+        f"{'recording':15s} {'it':>2s} {'relin':>5s} {'knot':>5s} {'p50 ms':>7s} {'p99 ms':>7s} "
         f"{'backlog 1st/last':>17s} {'thru k/s':>8s} | {'pos mm new / smooth / batch':>28s} | "
         f"{'joint ° new / smooth / batch':>30s}"
     )
@@ -171,7 +190,8 @@ def main() -> None:
         p = [r[k]["position_mm"] for k in ("newest", "smoothed", "batch")]
         j = [r[k]["joint_deg"] for k in ("newest", "smoothed", "batch")]
         print(
-            f"{r['recording']:15s} {r['iterations']:2d} {r['knot_ms']:5.1f} "
+            f"{r['recording']:15s} {r['iterations']:2d} {r['relinearize_s']:5.2f} "
+            f"{r['knot_ms']:5.1f} "
             f"{r['latency_p50_ms']:7.0f} "
             f"{r['latency_p99_ms']:7.0f} "
             f"{r['backlog_first_third']:8.1f}/{r['backlog_last_third']:<8.1f} "

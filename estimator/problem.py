@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import mujoco
 import numpy as np
@@ -113,6 +113,30 @@ class Problem:
     @property
     def T(self) -> int:
         return len(self.t_ns)
+
+    def keys(self, start: int, stop: int | None = None) -> Problem:
+        """The same problem on its knots start … stop − 1 (its samples as they are here; the
+        samples of its knot 1 are predicted from its knot 0, which the linearization does not
+        evaluate: leave that knot's rows out)."""
+        k = slice(start, stop)
+        blocks = [
+            replace(
+                b,
+                values=b.values[k],
+                sigma=b.sigma[k] if b.sigma.ndim == 2 else b.sigma,  # (per knot, or per row)
+                alpha=None if b.alpha is None else b.alpha[k],
+            )
+            for b in self.blocks
+        ]
+        return replace(
+            self,
+            t_ns=self.t_ns[k],
+            blocks=blocks,
+            qfrc_known=self.qfrc_known[k],
+            known_sigma=self.known_sigma[k],
+            physics_sigma=self.physics_sigma[k],
+            ctrl=self.ctrl[k] if len(self.ctrl) else self.ctrl,
+        )
 
     @property
     def nz(self) -> int:

@@ -44,7 +44,7 @@ from estimator.solver.covariance import with_covariance
 from estimator.solver.linearize import Linearizer
 from estimator.solver.softness_fit import fit_softness
 from estimator.solver.window import WindowResult, follow, solve_window
-from physics.dynamics import make_dynamics
+from physics.dynamics import Dynamics, make_dynamics
 from physics.model import weight as model_weight
 from physics.result import Constraints, Contacts
 
@@ -666,6 +666,7 @@ def collect_estimate(
     knots: Sequence[int] | None = None,
     residuals: bool = True,
     qvel: np.ndarray | None = None,
+    dynamics: Dynamics | None = None,
 ) -> Estimate:
     """The Estimate of a trajectory qpos (T, nq) with IMU biases (T, nb) on problem's knots:
     v, a by finite differences, forces and impulses by the native analytic inverse (contact
@@ -675,13 +676,14 @@ def collect_estimate(
     knots: the knots whose forces and contacts are wanted (default: all; the others NaN, no
     contacts); residuals=False leaves the residuals out (a streaming update publishes knots,
     not a report); qvel: (T, nv) the knots' velocities where the method has its own (a filter's
-    velocity state), NaN where it has none; else finite differences."""
+    velocity state), NaN where it has none; else finite differences. dynamics: the native
+    dynamics of a model equal to the problem's (a stream's updates: made once)."""
     model, h = problem.model, problem.h
     v = velocities(model, qpos, h)
     if qvel is not None:
         v = np.where(np.isnan(qvel), v, qvel)
     a = accelerations(v, h)
-    dyn = make_dynamics(model, "native")  # the problem's model, its softness applied
+    dyn = dynamics or make_dynamics(model, "native")  # the problem's model, its softness applied
     qfrc = np.full((problem.T, model.nv), np.nan)
     constraints = []
     balance = (

@@ -45,6 +45,7 @@ from estimator.problem import model_with_sensors
 from estimator.run import WINDOW_MARGIN_NS
 from estimator.settings import Settings
 from estimator.solver.fixed_lag import FixedLag, LagStep
+from estimator.solver.incremental import RELINEARIZE_S, IncrementalLag
 from physics.model import weight
 
 # the most new keys one solve takes, as a fraction of the lag. A solve costs about as much
@@ -116,6 +117,9 @@ class Stream:
 
     lag_s: how long a knot stays in the window before its estimate is final (smoothed).
     stale_s: a stream this far behind the newest sample stops holding knots back.
+    relinearize_s: the newest knots whose rows each update relinearizes, the older ones kept
+        linear (`estimator.solver.incremental`); 0: each update re-solves the whole window
+        (`estimator.solver.fixed_lag`).
     clock: the time of arrival of a pushed message (seconds; `time.perf_counter`).
     diagnose: run the unmodeled-contact and slip detectors on the newest knots
         (`Update.events`; `estimator.diagnose.online`, `estimator.diagnose.slip`).
@@ -129,6 +133,7 @@ class Stream:
         stale_s: float = 0.25,
         clock: Callable[[], float] = time.perf_counter,
         diagnose: DetectorSettings | None = None,
+        relinearize_s: float = RELINEARIZE_S,
     ) -> None:
         self.config, self.settings, self.clock = config, settings, clock
         self.compiled = model_with_sensors(config)
@@ -140,6 +145,7 @@ class Stream:
             self.detector = OnlineDetector(self.model, sigma_f, self.h, diagnose)
             self.slips = OnlineSlips(self.model, weight(self.model), self.h, diagnose)
         self.step_ns = round(self.h * 1e9)
+        self.relinearize = round(relinearize_s / self.h)  # keys (0: whole solves)
         self.lag_knots = max(1, round(lag_s / self.h))
         self.backlog_step = max(1, round(BACKLOG_STEP * self.lag_knots))
         self.stale_ns = round(stale_s * 1e9)
@@ -221,6 +227,7 @@ class Stream:
             return
         start = self.clock()
         step = self.lag.finish(self._measurements())
+        self.lag.close()
         if step is not None:
             update = self._published(step, 0, start)
             if self.detector is not None and self.slips is not None:
@@ -270,7 +277,17 @@ class Stream:
                 f"started without {', '.join(waiting)} (silent {self.stale_ns / 1e9:g} s after "
                 "the first stream)"
             )
-        self.lag = FixedLag(self.config, self.settings, self.compiled, earliest, self.lag_knots)
+        if self.relinearize:
+            self.lag = IncrementalLag(
+                self.config,
+                self.settings,
+                self.compiled,
+                earliest,
+                self.lag_knots,
+                self.relinearize,
+            )
+        else:
+            self.lag = FixedLag(self.config, self.settings, self.compiled, earliest, self.lag_knots)
 
     def _arrival(self, key: int, default: float) -> float:
         """When the sample that readied `key` arrived (marks of keys before it are dropped:

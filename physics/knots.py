@@ -62,6 +62,11 @@ class KnotEngine:
         mujoco.mjd_inverseFD(self.model, d, self.eps, False, *out, None)
 
 
+# a batch of at most this many knots runs on the caller's thread: the hand-offs to the pool
+# cost more than a second thread gains (a stream's incremental update)
+INLINE_KNOTS = 16
+
+
 class KnotBatch:
     """`threads` engines on one model, and a pool that hands each chunk of knots to an idle
     one."""
@@ -92,7 +97,7 @@ class KnotBatch:
             finally:
                 self.idle.put(engine)
 
-        if self.threads == 1:  # on the caller's thread: no hand-off for one engine
+        if self.threads == 1 or stop - start <= INLINE_KNOTS:  # on the caller's thread
             run(range(start, stop))
             return
         list(self.pool.map(run, chunks(start, stop, pieces or 4 * self.threads)))

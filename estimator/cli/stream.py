@@ -42,6 +42,7 @@ from estimator.io.logs.measurements import BadSampleCounts
 from estimator.io.mcap_writer import EstimateWriter
 from estimator.model_checks import check_for_estimate
 from estimator.settings import Settings
+from estimator.solver.incremental import RELINEARIZE_S
 from estimator.stream import Stream, Update
 
 STATUS_EVERY_S = 1.0
@@ -92,6 +93,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="Levenberg–Marquardt iterations per update (default 2)",
     )
     parser.add_argument(
+        "--relinearize",
+        type=float,
+        default=RELINEARIZE_S,
+        metavar="S",
+        help="relinearize the rows of the newest S seconds of knots at each update and keep "
+        "the older ones linear (incremental, iSAM2-like); 0: re-solve the whole window at "
+        f"each update (default {RELINEARIZE_S:g})",
+    )
+    parser.add_argument(
         "--stale",
         type=float,
         default=0.25,
@@ -131,8 +141,10 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     if args.start_pose is not None:
         config = config.starting_at(*args.start_pose)
-    if args.lag <= 0 or args.stale <= 0 or args.iterations < 1:
-        raise ConfigError("--lag and --stale must be > 0 s and --iterations ≥ 1")
+    if args.lag <= 0 or args.stale <= 0 or args.iterations < 1 or args.relinearize < 0:
+        raise ConfigError(
+            "--lag and --stale must be > 0 s, --relinearize ≥ 0 s and --iterations ≥ 1"
+        )
     if args.false_alarms_per_min <= 0:
         raise ConfigError(f"--false-alarms-per-min {args.false_alarms_per_min}: must be > 0")
     settings = replace(
@@ -149,6 +161,7 @@ def run(args: argparse.Namespace) -> int:
         lag_s=args.lag,
         stale_s=args.stale,
         diagnose=detector if args.diagnose else None,
+        relinearize_s=args.relinearize,
     )
     model = config.load_model()
     imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}

@@ -45,19 +45,20 @@ def add_normal_equations(
     g: np.ndarray,
     with_prior: bool,
     steps: int,
+    first_step: int = 0,
 ) -> None:
-    """H += JᵀJ and g += Jᵀr of the prior (with_prior) and the first `steps` walk steps, on
-    the bias columns (after nv) of the key blocks diag (T, nz, nz), lower (T, nz, nz: key
-    k + 1 against key k) and g (T, nz)."""
+    """H += JᵀJ and g += Jᵀr of the prior (with_prior) and the walk steps k → k + 1 for
+    first_step ≤ k < steps, on the bias columns (after nv) of the key blocks diag (T, nz,
+    nz), lower (T, nz, nz: key k + 1 against key k) and g (T, nz)."""
     b_ = slice(p.model.nv, p.nz)
     if with_prior:
         diag[0, b_, b_] += np.diag(p.bias_prior**-2.0)
         g[0, b_] += bias[0] / p.bias_prior**2
     W = np.diag(step_sigma(p) ** -2.0)
-    n = steps
-    step = (bias[1 : n + 1] - bias[:n]) @ W
-    diag[:n, b_, b_] += W
-    diag[1 : n + 1, b_, b_] += W
-    lower[:n, b_, b_] -= W
-    g[:n, b_] -= step
-    g[1 : n + 1, b_] += step
+    k, n = first_step, steps
+    step = (bias[k + 1 : n + 1] - bias[k:n]) @ W
+    diag[k:n, b_, b_] += W
+    diag[k + 1 : n + 1, b_, b_] += W
+    lower[k:n, b_, b_] -= W
+    g[k:n, b_] -= step
+    g[k + 1 : n + 1, b_] += step

@@ -13,11 +13,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.linalg
+import scipy.linalg.lapack
 
 from estimator.factors import bias_walk
 from estimator.factors.base import Block
 from estimator.solver.linearize import THREADS, Linearizer, z_columns
-from physics.knots import chunks
+from physics.knots import INLINE_KNOTS, chunks
 
 LAMBDA_MIN = 1e-9  # Levenberg–Marquardt's least damping, and its first
 
@@ -45,15 +46,25 @@ class BandedSystem:
         bias: np.ndarray,
         qpos: np.ndarray | None = None,
         until: int | None = None,
+        rows: range | None = None,
+        walk: range | None = None,
+        bias_prior: bool | None = None,
     ) -> BandedSystem:
         """The system of `lin.linearize`'s blocks (and the bias prior and walk, and the
         marginal prior at qpos). until: only the factors on keys ≤ until — the rows of knots
         k ≤ until − span + 2 and the walk steps to keys ≤ until — what a window's past says
-        before its keys ≤ until are marginalized (`marginal_prior`)."""
+        before its keys ≤ until are marginalized (`marginal_prior`).
+        rows, walk: only the rows of these knots and the walk steps k → k + 1 of these k (an
+        incremental update's parts: `incremental`); bias_prior: the bias prior on b_0
+        (default: without a marginal prior)."""
         p = lin.problem
         if until is not None:
             last_row = until - lin.span + 2  # knot of the last row kept: it reaches key `until`
-            keep = (np.arange(p.T - 2) + 1 <= last_row)[:, None]
+            rows = range(1, last_row + 1)
+            walk = range(0, min(p.T - 1, last_row))
+        if rows is not None:
+            knot = np.arange(p.T - 2) + 1
+            keep = ((knot >= rows.start) & (knot < rows.stop))[:, None]
             blocks = [
                 replace(
                     b,
@@ -65,7 +76,7 @@ class BandedSystem:
             ]
         T, nz, span = p.T, p.nz, lin.span
         K = T - 2
-        n_rows = K if until is None else max(0, min(K, until - span + 2))
+        n_rows = K if rows is None else max(0, min(K, rows.stop - 1))
         # Knot row i (knot k = i + 1) reaches keys i + a, a = 0 … span − 1. Each factor's
         # Jacobian is split by key into runs of consecutive columns, (a, columns in J,
         # columns in z_{i+a}) (slices: fancy indexing is 5× slower). The sensors' blocks, a
@@ -157,7 +168,10 @@ class BandedSystem:
                             H[a - b][i0 + b : i1 + b, rot, rot] += JrT @ C[i0:i1, b, rot]
             return diag, lower, g
 
-        shares = list(lin.pool.map(products, chunks(0, T, THREADS)))
+        if T <= INLINE_KNOTS:
+            shares = [products(range(T))]
+        else:
+            shares = list(lin.pool.map(products, chunks(0, T, THREADS)))
         diag, lower, g = shares[0]
         for more_diag, more_lower, more_g in shares[1:]:
             diag += more_diag
@@ -166,8 +180,11 @@ class BandedSystem:
                 mine += more
         if p.nb:  # (a marginal prior holds b_0 already) the steps k → k + 1 to keys ≤ the
             # last kept row's knot, with `until`
-            n = T - 1 if until is None else min(T - 1, until - lin.span + 2)
-            bias_walk.add_normal_equations(p, bias, diag, lower[0], g, lin.prior is None, n)
+            steps = range(0, T - 1) if walk is None else walk
+            with_prior = lin.prior is None if bias_prior is None else bias_prior
+            bias_walk.add_normal_equations(
+                p, bias, diag, lower[0], g, with_prior, min(steps.stop, T - 1), steps.start
+            )
         if lin.prior is not None:  # ½ eᵀΛe on the first keys: H += Λ, g += Λe
             assert qpos is not None, "a marginal prior needs the window's qpos"
             prior = lin.prior
@@ -195,19 +212,29 @@ class BandedSystem:
         T, nz, _ = self.diag.shape
         std = np.full((T, nv), np.nan)
         s, ab = self.scaled_band()
-        ab = ab.copy(order="F")
-        ab[0] += MARGINAL_REGULARIZER
         try:
-            L = scipy.linalg.cholesky_banded(ab, overwrite_ab=True, lower=True, check_finite=False)
+            L = self.factor(ab, MARGINAL_REGULARIZER)
         except np.linalg.LinAlgError as err:
             warnings.append(f"covariances unavailable ({err}); qpos_std is NaN")
             return std
-        first = 0 if keys is None or len(keys) == 0 else keys.start
-        Z = banded_inverse_blocks(L, nz, first)
-        variance = np.einsum("kii->ki", Z)[:, :nv] * s.reshape(T, nz)[first:, :nv] ** 2
-        chosen = np.arange(first, T) if keys is None else np.asarray(keys, dtype=int)
-        std[chosen] = np.sqrt(np.clip(variance[chosen - first], 0.0, None))
-        return std
+        return factor_std(L, s, nz, nv, range(T) if keys is None else keys)
+
+    @staticmethod
+    def factor(ab: np.ndarray, lam: float) -> np.ndarray:
+        """The banded Cholesky factor L of S H S + λ I (`scaled_band`'s ab), LAPACK's lower
+        storage; raises LinAlgError when it is not positive definite."""
+        damped = ab.copy(order="F")
+        damped[0] += lam
+        return scipy.linalg.cholesky_banded(
+            damped, overwrite_ab=True, lower=True, check_finite=False
+        )
+
+    @staticmethod
+    def solve(L: np.ndarray, s: np.ndarray, G: np.ndarray) -> np.ndarray:
+        """−(H + λD)⁻¹ g for each column g of G (T, nz, m) from that factor: (T, nz, m)."""
+        rhs = -s[:, None] * G.reshape(-1, G.shape[-1])
+        y = scipy.linalg.cho_solve_banded((L, True), rhs, check_finite=False)
+        return (s[:, None] * y).reshape(G.shape)
 
     def reversed(self) -> BandedSystem:
         """The same system with its keys in reverse order (key k is key T − 1 − k):
@@ -267,14 +294,38 @@ class BandedSystem:
     def damped_steps(self, s: np.ndarray, ab: np.ndarray, lam: float, G: np.ndarray) -> np.ndarray:
         """The damped steps −(H + λD)⁻¹ g for each column g of G (T, nz, m), one
         factorization: (T, nz, m)."""
-        damped = ab.copy(order="F")
-        damped[0] += lam
-        factor = scipy.linalg.cholesky_banded(
-            damped, overwrite_ab=True, lower=True, check_finite=False
-        )
-        rhs = -s[:, None] * G.reshape(-1, G.shape[-1])
-        y = scipy.linalg.cho_solve_banded((factor, True), rhs, check_finite=False)
-        return (s[:, None] * y).reshape(G.shape)
+        return self.solve(self.factor(ab, lam), s, G)
+
+
+def factor_std(L: np.ndarray, s: np.ndarray, nz: int, nv: int, keys: range) -> np.ndarray:
+    """(T, nv) marginal σ of x_k at `keys` (NaN at the others) from the factor L of the scaled
+    system (`BandedSystem.factor`): the diagonal blocks of its inverse by selected inversion
+    from the last key down to keys.start (`banded_inverse_blocks`)."""
+    T = L.shape[1] // nz
+    std = np.full((T, nv), np.nan)
+    if not len(keys):
+        return std
+    Z = banded_inverse_blocks(L, nz, keys.start)
+    variance = np.einsum("kii->ki", Z)[:, :nv] * s.reshape(T, nz)[keys.start :, :nv] ** 2
+    chosen = np.asarray(keys, dtype=int)
+    std[chosen] = np.sqrt(np.clip(variance[chosen - keys.start], 0.0, None))
+    return std
+
+
+def front_std(L: np.ndarray, s: np.ndarray, nz: int, nv: int, keys: range) -> np.ndarray:
+    """The same at a window's first keys without traversing it from the end: Σ_kk =
+    (L⁻¹E_k)ᵀ(L⁻¹E_k), E_k key k's columns of the identity; L⁻¹E_k is zero above key k,
+    and below it one banded triangular solve (LAPACK tbtrs) on L's trailing part."""
+    T = L.shape[1] // nz
+    std = np.full((T, nv), np.nan)
+    for k in keys:
+        E = np.zeros((L.shape[1] - k * nz, nv))
+        E[:nv] = np.eye(nv)
+        Y, info = scipy.linalg.lapack.dtbtrs(L[:, k * nz :], E, uplo="L")
+        if info != 0:
+            continue
+        std[k] = np.sqrt(np.einsum("ji,ji->i", Y, Y)) * s[k * nz : k * nz + nv]
+    return std
 
 
 def banded_inverse_blocks(L: np.ndarray, nz: int, first: int = 0) -> np.ndarray:

@@ -31,6 +31,7 @@ from estimator.leg_odometry import START_POSITION_STD_M, START_YAW_STD_RAD, unan
 from estimator.problem import build_problem
 from estimator.run import collect_estimate, initial_trajectory
 from estimator.settings import Settings
+from estimator.solver.banded import BandedSystem
 from estimator.solver.linearize import Derivatives
 from estimator.solver.window import WindowResult, solve_window
 
@@ -56,7 +57,7 @@ class LagStep:
     newest: range
     smoothed: range
     first: int
-    result: WindowResult
+    result: WindowResult | None  # the window's solve (None: an incremental update's)
     diverged: str = ""
     known_sigma: np.ndarray | None = None
 
@@ -124,7 +125,7 @@ class FixedLag:
                 derivatives=self.derivatives,
                 first=self.first,
             )
-            diverged = self._diverged(result, W)
+            diverged = self._diverged(result.qpos, result.cost_final / max(W - 2, 1))
         except (np.linalg.LinAlgError, FloatingPointError, ValueError) as err:
             diverged, result = f"the solve failed ({err})", None
         if diverged:  # start over from the measurements alone, without the prior
@@ -140,7 +141,7 @@ class FixedLag:
         smoothed = range(1, cut + 1) if cut else range(0)
         newest = range(max(self.published - self.first, 1), W - 1)
         publish = sorted({*newest, *smoothed})
-        std = self._std(result, W, newest, smoothed)
+        std = published_std(result.system, self.model.nv, W, newest, smoothed)
         estimate = collect_estimate(
             problem, result.qpos, result.bias, std, self.config, publish, residuals=False
         )
@@ -174,21 +175,8 @@ class FixedLag:
         newest = range(max(self.published - self.first, 1), W - 1)
         return LagStep(estimate, newest, smoothed, self.first, result, "", problem.known_sigma)
 
-    def _std(self, result: WindowResult, W: int, newest: range, smoothed: range) -> np.ndarray:
-        """(W, nv) marginal σ at the knots to publish (NaN at the others): the newest from
-        the last key down, the smoothed from the first key up (the system reversed), so
-        that neither costs the whole window."""
-        nv = self.model.nv
-        std = np.full((W, nv), np.nan)
-        if result.system is None:
-            return std
-        warnings: list[str] = []
-        if len(newest):
-            std[newest] = result.system.marginal_std(nv, warnings, range(newest.start, W))[newest]
-        if len(smoothed):
-            back = result.system.reversed().marginal_std(nv, warnings, range(W - smoothed.stop, W))
-            std[smoothed] = back[::-1][smoothed]
-        return std
+    def close(self) -> None:
+        """Let go of what the window holds open (the incremental update's engines)."""
 
     def reset(self) -> None:
         """Drop the window's solution and prior: the next advance starts from the
@@ -221,8 +209,8 @@ class FixedLag:
             if have:
                 bias[:have] = self._bias(nb)[:have]
             return qpos, bias
-        measured = np.zeros((W, model.nq), dtype=bool)
-        at_knots = initial_trajectory(model, measurements, t_ns, measured_out=measured)
+        measured = np.zeros((W - have, model.nq), dtype=bool)
+        at_knots = initial_trajectory(model, measurements, t_ns[have:], measured_out=measured)
         qpos = np.empty((W, model.nq))
         qpos[:have] = self.qpos
         v = np.zeros(model.nv)
@@ -231,7 +219,7 @@ class FixedLag:
             qpos[k] = qpos[k - 1]
             mujoco.mj_integratePos(model, qpos[k], v, self.h)
         new = slice(have, W)
-        qpos[new] = np.where(measured[new], at_knots[new], qpos[new])
+        qpos[new] = np.where(measured, at_knots, qpos[new])
         for j in np.flatnonzero(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE):
             quat = model.jnt_qposadr[j] + 3  # a free joint's quaternion, renormalized
             qpos[new, quat : quat + 4] /= np.linalg.norm(
@@ -242,14 +230,31 @@ class FixedLag:
         bias[have:] = old[-1]
         return qpos, bias
 
-    def _diverged(self, result: WindowResult, W: int) -> str:
+    def _diverged(self, qpos: np.ndarray, per_knot: float) -> str:
         """Why a solve is not to be trusted ("" if it is): NaN, or a cost per knot BLOWUP
         times the recent median."""
-        if not (np.all(np.isfinite(result.qpos)) and np.isfinite(result.cost_final)):
+        if not (np.all(np.isfinite(qpos)) and np.isfinite(per_knot)):
             return "the solution is not finite"
         if len(self.recent_cost) >= 5:
             median = float(np.median(self.recent_cost))
-            per_knot = result.cost_final / max(W - 2, 1)
             if per_knot > BLOWUP * max(median, 1e-12):
                 return f"its cost per knot {per_knot:.3g} is {per_knot / median:.3g}× the recent"
         return ""
+
+
+def published_std(
+    system: BandedSystem | None, nv: int, W: int, newest: range, smoothed: range
+) -> np.ndarray:
+    """(W, nv) marginal σ at the knots to publish (NaN at the others): the newest from the
+    last key down, the smoothed from the first key up (the system reversed), so that neither
+    costs the whole window."""
+    std = np.full((W, nv), np.nan)
+    if system is None:
+        return std
+    warnings: list[str] = []
+    if len(newest):
+        std[newest] = system.marginal_std(nv, warnings, range(newest.start, W))[newest]
+    if len(smoothed):
+        back = system.reversed().marginal_std(nv, warnings, range(W - smoothed.stop, W))
+        std[smoothed] = back[::-1][smoothed]
+    return std

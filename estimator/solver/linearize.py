@@ -22,7 +22,7 @@ from estimator.problem import (
     difference_jacobians,
     velocities,
 )
-from physics.knots import KnotBatch, KnotEngine
+from physics.knots import INLINE_KNOTS, KnotBatch, KnotEngine
 
 # MuJoCo threads of one estimate (a fleet task runs on its one CPU: 1)
 THREADS = int(os.environ.get("PHYSFUSE_THREADS") or 2)
@@ -68,7 +68,8 @@ class Linearizer:
     """Residuals and their Jacobians over all knots of a problem, vectorized across knots.
 
     derivatives, first: MuJoCo's derivatives kept across solves (a stream's window, whose
-    knot k is the stream's knot first + k)."""
+    knot k is the stream's knot first + k). engines: the engines of an earlier Linearizer on
+    the same model (kept open by their owner; a stream's updates)."""
 
     def __init__(
         self,
@@ -76,12 +77,14 @@ class Linearizer:
         prior: MarginalPrior | None = None,
         derivatives: Derivatives | None = None,
         first: int = 0,
+        engines: KnotBatch | None = None,
     ) -> None:
         self.problem = problem
         self.prior = prior  # on the first keys, from the knots before the window
         self.derivatives, self.first = derivatives, first
         # the engine at the knots, one MjData per thread (`physics.knots`)
-        self.engines = KnotBatch(
+        self.own_engines = engines is None
+        self.engines = engines or KnotBatch(
             problem.model, THREADS, problem.settings.path, problem.settings.fd_eps
         )
         self.pool = self.engines.pool  # the same threads run the numpy products
@@ -225,7 +228,8 @@ class Linearizer:
         if self.span == 4:
             out.append(motion.jerk_prior(p, t, robust))
         # the sensors' blocks on the engines' threads (numpy releases the GIL), in order
-        out += self.pool.map(lambda sensor: measurement.rows(p, t, bias, sensor, robust), p.blocks)
+        each = map if p.T <= INLINE_KNOTS else self.pool.map
+        out += each(lambda sensor: measurement.rows(p, t, bias, sensor, robust), p.blocks)
         return out
 
     def cost(self, qpos: np.ndarray, bias: np.ndarray) -> tuple[float, dict[str, float]]:
@@ -280,7 +284,8 @@ class Linearizer:
         return {"bias": bias_walk.cost(self.problem, bias, with_prior=self.prior is None)}
 
     def close(self) -> None:
-        self.engines.close()
+        if self.own_engines:
+            self.engines.close()
 
 
 # ---------------------------------------------------------------------------------------------
