@@ -164,22 +164,7 @@ class IncrementalLag(FixedLag):
     def _eliminate(self) -> None:
         """Key 0 out of the kept system (all its rows are in it), and out of the window."""
         assert self.kept is not None
-        k = self.kept
-        H00 = 0.5 * (k.diag[0] + k.diag[0].T)
-        s = 1.0 / np.sqrt(np.maximum(np.diag(H00), 1e-300))  # Jacobi scaling: stiff contacts
-        inv = s[:, None] * scipy.linalg.pinvh(s[:, None] * H00 * s[None, :]) * s[None, :]
-        C = [lo[0] for lo in k.lower]  # H_{o, 0}, o = 1 … span − 1
-        for a in range(len(C)):
-            Ca = C[a] @ inv
-            k.g[a + 1] -= Ca @ k.g[0]
-            for b in range(a + 1):
-                block = Ca @ C[b].T  # H_{a+1, 0} H_00⁻¹ H_{0, b+1}
-                if a == b:
-                    k.diag[a + 1] -= block
-                else:
-                    k.lower[a - b - 1][b + 1] -= block
-        k.diag, k.g = k.diag[1:], k.g[1:]
-        k.lower = [lo[1:] for lo in k.lower]
+        self.kept = eliminate_first(self.kept)
         self.anchor = (self.anchor[0][1:], self.anchor[1][1:])
         self.qpos, self.bias = self.qpos[1:], self._bias(self.anchor[1].shape[1])[1:]
         self.rows_kept -= 1
@@ -253,7 +238,7 @@ class IncrementalLag(FixedLag):
             step = super().advance(measurements, last_key)
             return None if step is None else replace(step, diverged=diverged)
         self.recent_cost.append(cost)
-        self.qpos, self.bias = qpos, bias
+        self.qpos, self.bias = qpos.copy(), bias.copy()  # (the estimate keeps its own)
         # publish: the newest knots, and those leaving the lag with the first that stays
         cut = max(W - self.lag_knots, 0)
         newest = range(max(self.published - self.first, 1), W - 1)
@@ -302,6 +287,27 @@ class IncrementalLag(FixedLag):
         if self.engines is not None:
             self.engines.close()
             self.engines = None
+
+
+def eliminate_first(system: BandedSystem) -> BandedSystem:
+    """The system of keys 1 … T − 1 with key 0 eliminated (the Schur complement on the keys
+    its blocks reach, H_rr − H_r0 H_00⁻¹ H_0r and g_r − H_r0 H_00⁻¹ g_0: the minimum over
+    x_0 of ½ xᵀHx + gᵀx), H_00⁻¹ by its Jacobi-scaled pseudo-inverse (stiff contacts)."""
+    diag, lower, g = system.diag.copy(), [lo.copy() for lo in system.lower], system.g.copy()
+    H00 = 0.5 * (diag[0] + diag[0].T)
+    s = 1.0 / np.sqrt(np.maximum(np.diag(H00), 1e-300))
+    inv = s[:, None] * scipy.linalg.pinvh(s[:, None] * H00 * s[None, :]) * s[None, :]
+    C = [lo[0] for lo in lower]  # H_{o, 0}, o = 1 … span − 1
+    for a in range(len(C)):
+        Ca = C[a] @ inv
+        g[a + 1] -= Ca @ g[0]
+        for b in range(a + 1):
+            block = Ca @ C[b].T  # H_{a+1, 0} H_00⁻¹ H_{0, b+1}
+            if a == b:
+                diag[a + 1] -= block
+            else:
+                lower[a - b - 1][b + 1] -= block
+    return BandedSystem(diag[1:], [lo[1:] for lo in lower], g[1:])
 
 
 def times(system: BandedSystem, d: np.ndarray) -> np.ndarray:
