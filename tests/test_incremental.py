@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 
 from estimator.config import load_config
-from estimator.io.state_topics import at_times, trajectory_errors
 from estimator.io.logs.source import open_log
 from estimator.io.state_topics import at_times, read_state_topics, trajectory_errors
 from estimator.settings import Settings
