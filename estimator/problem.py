@@ -127,6 +127,7 @@ class Problem:
                 alpha=None if b.alpha is None else b.alpha[k],
             )
             for b in self.blocks
+            if np.isfinite(b.values[k][1:-1]).any()  # (a block without a sample here: no rows)
         ]
         return replace(
             self,
