@@ -49,6 +49,11 @@ from physics.knots import KnotBatch
 RELINEARIZE_S = 0.04
 
 
+# the smoothed keys whose σ an update takes by a triangular solve across the window each
+# (`front_std`); more (a backlog worked off): from the reversed system's own factorization
+FRONT_SOLVES = 2
+
+
 class IncrementalLag(FixedLag):
     """A stream's window whose past rows are kept linear (`FixedLag`'s interface).
 
@@ -246,7 +251,10 @@ class IncrementalLag(FixedLag):
         nz, nv = total.diag.shape[1], self.model.nv
         assert L is not None
         std = factor_std(L, sc, nz, nv, newest)
-        std[smoothed] = front_std(L, sc, nz, nv, smoothed)[smoothed]
+        if len(smoothed) <= FRONT_SOLVES:  # a triangular solve across the window each
+            std[smoothed] = front_std(L, sc, nz, nv, smoothed)[smoothed]
+        else:  # the system reversed, factored once more
+            std[smoothed] = published_std(total, nv, W, range(0), smoothed)[smoothed]
         if self.dynamics is None:
             self.dynamics = make_dynamics(window.model, "native")
         estimate = collect_estimate(
