@@ -25,6 +25,7 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
 from estimator.config import Config
 from estimator.diagnose.detect import DetectorSettings, Event
@@ -57,6 +58,12 @@ from physics.model import weight
 # 1.28 s mocap dropout, base 0.67 mm at half a lag, 0.40 at a quarter (every key solved
 # about four times before it leaves), 7.95 at a whole lag
 BACKLOG_STEP = 0.5
+
+
+# the process's BLAS, held to one thread while the solver runs beside MuJoCo's threads: on a
+# busy machine a multithreaded OpenBLAS spin-waits (humanoid_push's incremental update with a
+# second process busy: 44 ms on one BLAS thread, 167 ms on two, 109 of them in the Cholesky)
+BLAS = ThreadpoolController()
 
 
 @dataclass(frozen=True)
@@ -211,7 +218,8 @@ class Stream:
             start = self.clock()
             backlog = self.ready_until - self.solved_until
             last = min(self.ready_until, self.solved_until + self.backlog_step)
-            step = self.lag.advance(self._measurements(), last)
+            with BLAS.limit(limits=1, user_api="blas"):  # (as `batch.estimate`)
+                step = self.lag.advance(self._measurements(), last)
             self.solved_until = last
             if step is not None:
                 yield self._published(step, backlog, start)
@@ -226,7 +234,8 @@ class Stream:
         if self.lag is None:
             return
         start = self.clock()
-        step = self.lag.finish(self._measurements())
+        with BLAS.limit(limits=1, user_api="blas"):
+            step = self.lag.finish(self._measurements())
         self.lag.close()
         if step is not None:
             update = self._published(step, 0, start)

@@ -49,6 +49,14 @@ from physics.knots import KnotBatch
 RELINEARIZE_S = 0.04
 
 
+# a key whose last step moved a coordinate more than this (m or rad) keeps its rows in the
+# tail, relinearized (iSAM2's relinearization threshold; the same 1 mm or mrad within which
+# MuJoCo's derivatives are reused): a backlog worked off many keys at a time, or keys that
+# start far off, are solved again before their rows are kept (Go2 replayed at --rate 0
+# through its 1.28 s mocap dropout: base 0.42–0.47 mm smoothed, 0.58 without; at 0.1 mm
+# the tail often reaches back to the leaving keys, and one of two runs ended 5.3 mm off)
+RELINEARIZE_STEP = 1e-3
+
 # the smoothed keys whose σ an update takes by a triangular solve across the window each
 # (`front_std`); more (a backlog worked off): from the reversed system's own factorization
 FRONT_SOLVES = 2
@@ -77,6 +85,8 @@ class IncrementalLag(FixedLag):
         self.anchor = (np.zeros((0, self.model.nq)), np.zeros((0, 0)))  # x̄: (qpos, bias)
         self.rows_kept = 0  # the rows of window knots < rows_kept are in `kept`
         self.walk_kept = 0  # and the bias walk steps k → k + 1 for k < walk_kept
+        self.moved = np.zeros(0)  # per key, its largest coordinate's last step (m or rad)
+        self.relinearized = 0  # the keys of the last update's tail
 
     def advance(self, measurements: Mapping[str, Measurement], last_key: int) -> LagStep | None:
         if self.kept is None:
@@ -117,6 +127,7 @@ class IncrementalLag(FixedLag):
             lin.close()
         self.anchor = (self.qpos.copy(), bias.copy())
         self.rows_kept, self.walk_kept = rows_lo, tail - 1
+        self.moved = np.zeros(W)  # (solved whole, to its tolerance)
         self.prior = None  # (in `kept` now)
 
     def _grow(self, W: int, qpos: np.ndarray, bias: np.ndarray) -> None:
@@ -171,6 +182,7 @@ class IncrementalLag(FixedLag):
         assert self.kept is not None
         self.kept = eliminate_first(self.kept)
         self.anchor = (self.anchor[0][1:], self.anchor[1][1:])
+        self.moved = self.moved[1:]
         self.qpos, self.bias = self.qpos[1:], self._bias(self.anchor[1].shape[1])[1:]
         self.rows_kept -= 1
         self.walk_kept -= 1
@@ -184,11 +196,19 @@ class IncrementalLag(FixedLag):
         W = stop - self.first
         t_ns = self.t_ns(self.first, stop)
         nb = self.anchor[1].shape[1]
-        solved = len(self.qpos)  # keys solved at least once (rows leave the tail only there)
+        # the tail: the newest `relinearize` keys, and every key not yet solved once or that
+        # moved more than RELINEARIZE_STEP in the last update (rows leave it only once their
+        # keys have settled)
+        moving = np.flatnonzero(self.moved > RELINEARIZE_STEP)
+        settled = min(len(self.qpos), moving[0] if len(moving) else len(self.qpos))
         qpos, bias = self._start(measurements, t_ns, nb)
         self._grow(W, qpos, bias)
-        tail = max(min(W - self.relinearize, solved), self.walk_kept + 1)
+        # (the rows of the keys that leave the lag with this update kept: they are eliminated;
+        # and those of the next key, whose knot the next update's problem starts before)
+        leave = max(W - self.lag_knots, 0)
+        tail = max(min(W - self.relinearize, settled), self.walk_kept + 1, leave + self.span)
         rows_lo = max(tail - self.span + 2, self.rows_kept)
+        self.relinearized = W - tail
         # the rows leaving the tail and the tail's, in one problem on keys s … W − 1 (from
         # two keys before the first row's: a position-stage sample of a problem's knot 1 is
         # predicted from its knot 0, where the linearization has no sensor values)
@@ -215,6 +235,7 @@ class IncrementalLag(FixedLag):
             self.rows_kept, self.walk_kept = rows_lo, tail - 1
             tail_rows = slice(rows.start - 1, rows.stop - 1)  # (block row i: knot i + 1)
             cost = sum(float(b.cost[tail_rows].sum()) for b in blocks) / max(len(rows), 1)
+            moved = np.full(W, np.inf)
             # Gauss–Newton on the tail, the kept rows through their linear model
             for it in range(max(self.settings.max_iterations, 1)):
                 if it:
@@ -229,6 +250,7 @@ class IncrementalLag(FixedLag):
                 if L is None:
                     break
                 dx = BandedSystem.solve(L, sc, total.g[..., None])[..., 0]
+                moved = np.abs(dx[:, : self.model.nv]).max(axis=1)  # (the last step's)
                 qpos = retract(self.model, qpos, dx[:, : self.model.nv])
                 bias = bias + dx[:, self.model.nv :]
         finally:
@@ -244,10 +266,10 @@ class IncrementalLag(FixedLag):
             return None if step is None else replace(step, diverged=diverged)
         self.recent_cost.append(cost)
         self.qpos, self.bias = qpos.copy(), bias.copy()  # (the estimate keeps its own)
+        self.moved = moved
         # publish: the newest knots, and those leaving the lag with the first that stays
-        cut = max(W - self.lag_knots, 0)
         newest = range(max(self.published - self.first, 1), W - 1)
-        smoothed = range(1, cut + 1) if cut else range(0)
+        smoothed = range(1, leave + 1) if leave else range(0)
         nz, nv = total.diag.shape[1], self.model.nv
         assert L is not None
         std = factor_std(L, sc, nz, nv, newest)
@@ -269,7 +291,7 @@ class IncrementalLag(FixedLag):
         )
         step = LagStep(estimate, newest, smoothed, self.first, None, "", window.known_sigma)
         self.published = self.first + W - 1
-        for _ in range(cut):
+        for _ in range(leave):
             self._eliminate()
         self.derivatives.forget_before(self.first)
         return step
