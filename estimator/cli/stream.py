@@ -90,7 +90,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--iterations",
         type=int,
         default=2,
-        help="Levenberg–Marquardt iterations per update (default 2)",
+        help="iterations per update: Gauss–Newton steps on the newest knots (Levenberg–"
+        "Marquardt on the whole window with --relinearize 0) (default 2)",
     )
     parser.add_argument(
         "--relinearize",
