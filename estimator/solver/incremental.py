@@ -159,11 +159,8 @@ class IncrementalLag(FixedLag):
         """Rows linearized at x (their system `part`, on the keys from `at`) into the kept
         system: H += H_u, g += g_u − H_u d_u."""
         assert self.kept is not None
-        k, n = self.kept, len(part.diag)
-        k.diag[at : at + n] += part.diag
-        for mine, theirs in zip(k.lower, part.lower, strict=True):
-            mine[at : at + len(theirs)] += theirs
-        k.g[at : at + n] += part.g - times(part, d[at : at + n])
+        add_at(self.kept, part, at)
+        self.kept.g[at : at + len(part.g)] -= times(part, d[at : at + len(part.g)])
 
     def _with_kept(self, fresh: BandedSystem, at: int, d: np.ndarray) -> BandedSystem:
         """The window's system at x: the kept rows through their linear model (g + H d) and
@@ -171,10 +168,7 @@ class IncrementalLag(FixedLag):
         assert self.kept is not None
         k = self.kept
         total = BandedSystem(k.diag.copy(), [lo.copy() for lo in k.lower], k.g + times(k, d))
-        total.diag[at:] += fresh.diag
-        for mine, theirs in zip(total.lower, fresh.lower, strict=True):
-            mine[at : at + len(theirs)] += theirs
-        total.g[at:] += fresh.g
+        add_at(total, fresh, at)
         return total
 
     def _eliminate(self) -> None:
@@ -338,6 +332,15 @@ def eliminate_first(system: BandedSystem) -> BandedSystem:
             else:
                 lower[a - b - 1][b + 1] -= block
     return BandedSystem(diag[1:], [lo[1:] for lo in lower], g[1:])
+
+
+def add_at(system: BandedSystem, part: BandedSystem, at: int) -> None:
+    """system += part, part's key 0 on system's key `at`."""
+    n = len(part.diag)
+    system.diag[at : at + n] += part.diag
+    for mine, theirs in zip(system.lower, part.lower, strict=True):
+        mine[at : at + len(theirs)] += theirs
+    system.g[at : at + n] += part.g
 
 
 def times(system: BandedSystem, d: np.ndarray) -> np.ndarray:
