@@ -49,14 +49,14 @@ from estimator.solver.fixed_lag import FixedLag, LagStep
 from estimator.solver.incremental import RELINEARIZE_S, IncrementalLag
 from physics.model import weight
 
-# the most new keys one solve takes, as a fraction of the lag. A solve costs about as much
-# for 10 new keys as for 50 (the whole window is re-solved): at a quarter lag a live node
-# fell behind for good (real rate on this 2-core machine, replayed as
-# `benchmarks/stream_latency.py` does, two runs each: latency p50 2.1–3.5 s, p99 3.5–5.3 s),
-# at half a lag or a whole one it kept within 0.6–1.0 s (p99 1.1–2.0 s). A key that starts
-# far off and a backlog worked off at once pay for it: Go2 replayed at --rate 0 through its
-# 1.28 s mocap dropout, base 0.67 mm at half a lag, 0.40 at a quarter (every key solved
-# about four times before it leaves), 7.95 at a whole lag
+# the most new keys one solve takes, as a fraction of the lag. Measured with whole-window
+# updates (`--relinearize 0`), where a solve costs about as much for 10 new keys as for 50: at
+# a quarter lag a live node fell behind for good (real rate on this 2-core machine, replayed
+# as `benchmarks/stream_latency.py` does, two runs each: latency p50 2.1–3.5 s, p99 3.5–5.3
+# s), at half a lag or a whole one it kept within 0.6–1.0 s (p99 1.1–2.0 s); Go2 replayed at
+# --rate 0 through its 1.28 s mocap dropout, base 0.67 mm at half a lag, 0.40 at a quarter,
+# 7.95 at a whole lag. An incremental update costs ~27 ms plus ~6.5 ms per new key
+# (humanoid_push): only a backlog reaches the bound
 BACKLOG_STEP = 0.5
 
 
