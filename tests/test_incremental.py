@@ -52,7 +52,7 @@ def dense(system: BandedSystem) -> np.ndarray:
 def test_eliminating_the_first_key_is_the_dense_schur_complement():
     for span in (3, 4):
         system = random_banded(T=7, nz=5, span=span, seed=span)
-        H, g, nz = dense(system), system.g.reshape(-1), 5
+        H, g, nz = dense(system), system.g.reshape(-1).copy(), 5  # (eliminated in place)
         e, r = slice(0, nz), slice(nz, None)
         schur = H[r, r] - H[r, e] @ np.linalg.solve(H[e, e], H[e, r])
         g_r = g[r] - H[r, e] @ np.linalg.solve(H[e, e], g[e])

@@ -316,17 +316,25 @@ class IncrementalLag(FixedLag):
 def eliminate_first(system: BandedSystem) -> BandedSystem:
     """The system of keys 1 … T − 1 with key 0 eliminated (the Schur complement on the keys
     its blocks reach, H_rr − H_r0 H_00⁻¹ H_0r and g_r − H_r0 H_00⁻¹ g_0: the minimum over
-    x_0 of ½ xᵀHx + gᵀx), H_00⁻¹ by its Jacobi-scaled pseudo-inverse (stiff contacts)."""
-    diag, lower, g = system.diag.copy(), [lo.copy() for lo in system.lower], system.g.copy()
-    H00 = 0.5 * (diag[0] + diag[0].T)
-    s = 1.0 / np.sqrt(np.maximum(np.diag(H00), 1e-300))
-    inv = s[:, None] * scipy.linalg.pinvh(s[:, None] * H00 * s[None, :]) * s[None, :]
+    x_0 of ½ xᵀHx + gᵀx), H_00 Jacobi-scaled (stiff contacts) and Cholesky-factored (its
+    pseudo-inverse where it is only semidefinite). In place: the result is a view of the
+    system's arrays, whose blocks next to key 0 it changes."""
+    diag, lower, g = system.diag, system.lower, system.g
+    nz = diag.shape[1]
     C = [lo[0] for lo in lower]  # H_{o, 0}, o = 1 … span − 1
+    # X = H_00⁻¹ [H_{0,1} … H_{0,span−1}, g_0], scaled: S (S H_00 S)⁻¹ S
+    s = 1.0 / np.sqrt(np.maximum(np.diag(diag[0]), 1e-300))
+    A = s[:, None] * diag[0] * s[None, :]
+    B = s[:, None] * np.hstack([*(c.T for c in C), g[0][:, None]])
+    try:
+        X = scipy.linalg.cho_solve(scipy.linalg.cho_factor(A, lower=True), B)
+    except np.linalg.LinAlgError:  # (semidefinite: the pseudo-inverse)
+        X = scipy.linalg.pinvh(0.5 * (A + A.T)) @ B
+    X = s[:, None] * X
     for a in range(len(C)):
-        Ca = C[a] @ inv
-        g[a + 1] -= Ca @ g[0]
+        g[a + 1] -= C[a] @ X[:, -1]
         for b in range(a + 1):
-            block = Ca @ C[b].T  # H_{a+1, 0} H_00⁻¹ H_{0, b+1}
+            block = C[a] @ X[:, b * nz : (b + 1) * nz]  # H_{a+1, 0} H_00⁻¹ H_{0, b+1}
             if a == b:
                 diag[a + 1] -= block
             else:
