@@ -55,7 +55,7 @@ from physics.model import weight
 # as `benchmarks/stream_latency.py` does, two runs each: latency p50 2.1–3.5 s, p99 3.5–5.3
 # s), at half a lag or a whole one it kept within 0.6–1.0 s (p99 1.1–2.0 s); Go2 replayed at
 # --rate 0 through its 1.28 s mocap dropout, base 0.67 mm at half a lag, 0.40 at a quarter,
-# 7.95 at a whole lag. An incremental update costs ~27 ms plus ~6.5 ms per new key
+# 7.95 at a whole lag. An incremental update costs ~26 ms plus 5–6 ms per new key
 # (humanoid_push): only a backlog reaches the bound
 BACKLOG_STEP = 0.5
 
