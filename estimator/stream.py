@@ -70,7 +70,8 @@ BLAS = ThreadpoolController()
 class Update:
     """What one solve publishes. estimate: the window's knots; newest / smoothed: indices
     into it (`LagStep`); latency_s: per newest knot, from the arrival of the sample that made
-    it ready to now; backlog: knots ready and not yet solved when the solve started."""
+    it ready to now; backlog: knots ready and not yet solved when the solve started;
+    relinearized: the keys whose rows the solve relinearized (a whole-window solve: all)."""
 
     estimate: Estimate
     newest: range
@@ -80,6 +81,7 @@ class Update:
     solve_s: float
     event: str = ""  # a divergence detected, and what was done
     events: list[Event] = field(default_factory=list)  # diagnostics (`Stream(diagnose=…)`)
+    relinearized: int = 0
 
 
 @dataclass
@@ -358,5 +360,13 @@ class Stream:
             )
             c.events.append(event)
         return Update(
-            step.estimate, step.newest, step.smoothed, latency, backlog, now - start, event, events
+            step.estimate,
+            step.newest,
+            step.smoothed,
+            latency,
+            backlog,
+            now - start,
+            event,
+            events,
+            step.relinearized,
         )

@@ -72,6 +72,12 @@ def test_a_recording_replayed_over_tcp_is_estimated_as_it_arrives(tmp_path, batc
     assert report["counts"]["knots_newest"] >= knots - 3
     assert report["counts"]["knots_smoothed"] >= knots - 3
     assert len(report["latency_s"]) == report["counts"]["knots_newest"]
+    # once the window is incremental an update relinearizes the keys it took in (at most
+    # half the lag's, replayed at --rate 0) and the newest 0.04 s, not the whole window (at
+    # its first whole solve 320 keys; then 125 each, measured)
+    assert len(report["relinearized"]) == len(report["solve_s"])
+    keys = (0.5 * 0.5 + 0.04) / report["knot_s"]
+    assert max(report["relinearized"][-5:]) <= keys < max(report["relinearized"])
     newest, n_newest = _joint_error(out, "/estimate")
     smoothed, n_smoothed = _joint_error(out, "/estimate_smoothed")
     assert n_newest == n_smoothed == report["counts"]["knots_newest"]

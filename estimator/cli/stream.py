@@ -132,7 +132,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="--diagnose: the target false-alarm rate that sets the threshold (default 1)",
     )
     parser.add_argument(
-        "--stats", type=Path, help="JSON of the run: latencies, backlog, solve times, counts"
+        "--stats",
+        type=Path,
+        help="JSON of the run: latencies, backlog, solve times, keys relinearized, counts",
     )
     add_start_pose_argument(parser)
     parser.add_argument("--quiet", action="store_true", help="no status line")
@@ -321,6 +323,7 @@ class Status:
         self.latency: list[float] = []
         self.backlog: list[int] = []
         self.solve: list[float] = []
+        self.relinearized: list[int] = []  # keys whose rows each update relinearized
         self.queued: list[int] = []  # messages waiting when the solver took the ready knots
         self.recent: deque[float] = deque(maxlen=500)
         self.lines: deque[str] = deque(maxlen=3)  # the latest source events and warnings
@@ -339,6 +342,7 @@ class Status:
         self.recent.extend(update.latency_s)
         self.backlog.append(update.backlog)
         self.solve.append(update.solve_s)
+        self.relinearized.append(update.relinearized)
         if update.event:
             self.log(update.event)
         for e in update.events:
@@ -377,6 +381,7 @@ class Status:
             "backlog": self.backlog,
             "queued": self.queued,
             "solve_s": self.solve,
+            "relinearized": self.relinearized,
             "counts": asdict(stream.counts),
             "bad": {name: b.as_dict() for name, b in self.bad.items()},
             "knot_s": stream.h,

@@ -60,6 +60,7 @@ class LagStep:
     result: WindowResult | None  # the window's solve (None: an incremental update's)
     diverged: str = ""
     known_sigma: np.ndarray | None = None
+    relinearized: int = 0  # the keys whose rows the solve relinearized (a whole solve: all)
 
 
 class FixedLag:
@@ -146,7 +147,7 @@ class FixedLag:
             problem, result.qpos, result.bias, std, self.config, publish, residuals=False
         )
         step = LagStep(
-            estimate, newest, smoothed, self.first, result, diverged, problem.known_sigma
+            estimate, newest, smoothed, self.first, result, diverged, problem.known_sigma, W
         )
         self.published = self.first + W - 1
         self.qpos, self.bias = result.qpos[cut:].copy(), result.bias[cut:].copy()
@@ -173,7 +174,7 @@ class FixedLag:
             problem, result.qpos, result.bias, std, self.config, smoothed, residuals=False
         )
         newest = range(max(self.published - self.first, 1), W - 1)
-        return LagStep(estimate, newest, smoothed, self.first, result, "", problem.known_sigma)
+        return LagStep(estimate, newest, smoothed, self.first, result, "", problem.known_sigma, W)
 
     def close(self) -> None:
         """Let go of what the window holds open (the incremental update's engines)."""

@@ -86,7 +86,6 @@ class IncrementalLag(FixedLag):
         self.rows_kept = 0  # the rows of window knots < rows_kept are in `kept`
         self.walk_kept = 0  # and the bias walk steps k → k + 1 for k < walk_kept
         self.moved = np.zeros(0)  # per key, its largest coordinate's last step (m or rad)
-        self.relinearized = 0  # the keys of the last update's tail
 
     def advance(self, measurements: Mapping[str, Measurement], last_key: int) -> LagStep | None:
         if self.kept is None:
@@ -202,7 +201,6 @@ class IncrementalLag(FixedLag):
         leave = max(W - self.lag_knots, 0)
         tail = max(min(W - self.relinearize, settled), self.walk_kept + 1, leave + self.span)
         rows_lo = max(tail - self.span + 2, self.rows_kept)
-        self.relinearized = W - tail
         # the rows leaving the tail and the tail's, in one problem on keys s … W − 1 (from
         # two keys before the first row's: a position-stage sample of a problem's knot 1 is
         # predicted from its knot 0, where the linearization has no sensor values)
@@ -283,7 +281,9 @@ class IncrementalLag(FixedLag):
             residuals=False,
             dynamics=self.dynamics,
         )
-        step = LagStep(estimate, newest, smoothed, self.first, None, "", window.known_sigma)
+        step = LagStep(
+            estimate, newest, smoothed, self.first, None, "", window.known_sigma, W - tail
+        )
         self.published = self.first + W - 1
         for _ in range(leave):
             self._eliminate()
@@ -305,7 +305,7 @@ class IncrementalLag(FixedLag):
         estimate = collect_estimate(
             window, self.qpos, bias, std, self.config, smoothed, residuals=False
         )
-        return LagStep(estimate, newest, smoothed, self.first, None, "", window.known_sigma)
+        return LagStep(estimate, newest, smoothed, self.first, None, "", window.known_sigma, 0)
 
     def close(self) -> None:
         if self.engines is not None:
