@@ -41,7 +41,7 @@ from estimator.problem import (
 )
 from estimator.settings import Settings
 from estimator.solver.covariance import with_covariance
-from estimator.solver.linearize import Linearizer
+from estimator.solver.linearize import Linearizer, row_span
 from estimator.solver.softness_fit import fit_softness
 from estimator.solver.window import WindowResult, follow, solve_window
 from physics.dynamics import Dynamics, make_dynamics
@@ -135,7 +135,7 @@ def smooth(
     # The sweep: window i solves keys [s, e) with the marginal prior of the knots before s,
     # keeps [s, s + a) and hands keys s + a … on to the next window (with its past
     # marginalized onto them): its last `overlap` knots only look ahead for the kept ones.
-    n_shared = (4 if settings.jerk_prior_std > 0 else 3) - 1  # keys two windows' rows share
+    n_shared = row_span(settings) - 1  # keys two windows' rows share
     # Windows hand over at anchors every `step` knots of the log's clock (t // h), so that a
     # slice of a log (a chunk) is swept in the windows the whole log is: the next window
     # starts at the next anchor, or (join = "quiet") at the quietest key of the `early` knots

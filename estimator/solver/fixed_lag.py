@@ -32,7 +32,7 @@ from estimator.problem import build_problem
 from estimator.run import collect_estimate, initial_trajectory
 from estimator.settings import Settings
 from estimator.solver.banded import BandedSystem
-from estimator.solver.linearize import Derivatives
+from estimator.solver.linearize import Derivatives, row_span
 from estimator.solver.window import WindowResult, solve_window
 
 MIN_KEYS = 8  # a window solves once it has this many keys (the marginal prior needs 3 + 3)
@@ -111,7 +111,7 @@ class FixedLag:
                 self.model, qpos, bias, problem.bias_prior, START_POSITION_STD_M, START_YAW_STD_RAD
             )
         W = len(t_ns)
-        n_shared = (4 if self.settings.jerk_prior_std > 0 else 3) - 1
+        n_shared = row_span(self.settings) - 1
         leave = W - self.lag_knots  # keys that leave the lag with this solve
         marginalize = leave if leave >= 1 and leave + n_shared <= W else None
         diverged = ""

@@ -39,7 +39,7 @@ from estimator.solver.banded import (
     front_std,
 )
 from estimator.solver.fixed_lag import FixedLag, LagStep, published_std
-from estimator.solver.linearize import THREADS, Linearizer
+from estimator.solver.linearize import THREADS, Linearizer, row_span
 from physics.dynamics import Dynamics, make_dynamics
 from physics.knots import KnotBatch
 
@@ -78,7 +78,7 @@ class IncrementalLag(FixedLag):
     ) -> None:
         super().__init__(config, settings, compiled, t0_ns, lag_knots)
         self.relinearize = max(relinearize, 1)
-        self.span = 4 if settings.jerk_prior_std > 0 else 3  # keys a knot's rows reach
+        self.span = row_span(settings)  # keys a knot's rows reach
         self.engines: KnotBatch | None = None  # (made once, on the windows' model)
         self.dynamics: Dynamics | None = None
         self.kept: BandedSystem | None = None  # over the window's keys, in x̄ coordinates

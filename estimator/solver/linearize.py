@@ -22,10 +22,17 @@ from estimator.problem import (
     difference_jacobians,
     velocities,
 )
+from estimator.settings import Settings
 from physics.knots import INLINE_KNOTS, KnotBatch, KnotEngine
 
 # MuJoCo threads of one estimate (a fleet task runs on its one CPU: 1)
 THREADS = int(os.environ.get("PHYSFUSE_THREADS") or 2)
+
+
+def row_span(settings: Settings) -> int:
+    """The keys one knot's rows reach: (x_{k−1}, x_k, x_{k+1}), and x_{k+2} with the jerk
+    prior."""
+    return 4 if settings.jerk_prior_std > 0 else 3
 
 
 class Derivatives:
@@ -99,7 +106,7 @@ class Linearizer:
         for d in self.rotation_dofs:
             self.group_cols[d : d + 3] = d + np.arange(3)
             self.group_mask[d : d + 3] = True
-        self.span = 4 if problem.settings.jerk_prior_std > 0 else 3  # keys a knot's rows reach
+        self.span = row_span(problem.settings)  # keys a knot's rows reach
         # which of mjd_inverseFD's derivatives the rows use: u's where a physics row has a σ
         # (not in the kinematic smoother), the sensors' by v and a only for velocity- and
         # acceleration-stage sensors (a manipulator's mocap and encoders need ∂s/∂q alone)
