@@ -78,6 +78,8 @@ def streamed(
             str(iterations),
             "--relinearize",
             str(relinearize),
+            "--fit-softness",  # (a 4 s log ends before the fit of its first 2 s is back)
+            "none",
             "--quiet",
         ],
         cwd=ROOT,

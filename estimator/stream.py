@@ -15,19 +15,31 @@ every live stream has a sample at or after t_k: a stream whose newest sample is 
 `stale_s` behind the newest of all stops holding the knots back (a sensor that stopped), and
 its samples older than the window are counted late and dropped. Latency is measured from the
 arrival of the sample that made a knot ready to the update that publishes its newest estimate.
+
+With `fit_softness = "first_window"` (the default) the contact softness is fitted on the
+stream's first `fit_softness_s` as a batch estimate fits it on the log's (`run.
+softness_fitted`), in a process of its own (`SoftnessFitJob`): the node publishes with the
+model's own softness meanwhile, then re-solves its window with the fitted one.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import os
+import pickle
+import subprocess
+import sys
+import tempfile
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from estimator.config import Config
+from estimator.config import Config, load_config
 from estimator.diagnose.detect import DetectorSettings, Event
 from estimator.diagnose.online import OnlineDetector
 from estimator.diagnose.slip import OnlineSlips
@@ -43,7 +55,7 @@ from estimator.io.logs.samples import SampleExtractor
 from estimator.io.logs.source import RawMessage
 from estimator.knots import MAX_KNOTS
 from estimator.problem import model_with_sensors
-from estimator.run import WINDOW_MARGIN_NS
+from estimator.run import WINDOW_MARGIN_NS, softness_fitted
 from estimator.settings import Settings
 from estimator.solver.fixed_lag import FixedLag, LagStep
 from estimator.solver.incremental import RELINEARIZE_S, IncrementalLag
@@ -120,6 +132,102 @@ class _Buffer:
             del self.t[:i], self.log_t[:i], self.values[:i]
 
 
+def _as_measurements(
+    config: Config, buffers: Mapping[str, _Buffer], bad: Mapping[str, BadSampleCounts]
+) -> dict[str, Measurement]:
+    """Buffered samples as the batch reader's arrays."""
+    out = {}
+    for name, stream in config.streams.items():
+        b = buffers[name]
+        components = STREAM_COMPONENTS[stream.kind]
+        values = (
+            np.stack(b.values) if b.values else np.zeros((0, len(stream.elements), len(components)))
+        )
+        out[name] = Measurement(
+            stream=name,
+            kind=stream.kind,
+            topic=stream.topic,
+            element_type=stream.element_type,
+            elements=stream.elements,
+            components=components,
+            t_ns=np.array(b.t, dtype=np.int64),
+            log_time_ns=np.array(b.log_t, dtype=np.int64),
+            values=values,
+            bad=bad.get(name, BadSampleCounts()),
+        )
+    return out
+
+
+class SoftnessFitJob:
+    """The contact-softness fit of a stream's start (`run.softness_fitted` on the knots t_ns,
+    as a batch estimate fits the log's start) in a Python process of its own, at a lower
+    priority, so that the node keeps publishing meanwhile. `result()`: (the fitted settings,
+    the fit) once it is done, a line saying why it failed, or None while it runs."""
+
+    def __init__(
+        self,
+        config: Config,
+        measurements: dict[str, Measurement],
+        settings: Settings,
+        t_ns: np.ndarray,
+    ) -> None:
+        self.folder = tempfile.TemporaryDirectory(prefix="physfuse_fit_")
+        job = Path(self.folder.name)
+        # (the config by its file: its streams are read-only mappings, which do not pickle)
+        with (job / "in.pickle").open("wb") as f:
+            pickle.dump((config.path, config.start_pose, measurements, settings, t_ns), f)
+        # a fresh interpreter, not multiprocessing's spawn: that re-runs a user's script
+        self.process = subprocess.Popen(
+            [sys.executable, "-c", "from estimator.stream import fit_job; fit_job()", str(job)],
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        self.started = time.perf_counter()
+        self.took_s = 0.0
+        self.out: tuple[Settings, dict[str, float]] | str | None = None
+
+    def result(self, timeout: float | None = 0.0) -> tuple[Settings, dict[str, float]] | str | None:
+        """Wait up to `timeout` s (None: until it is done)."""
+        if self.out is not None:
+            return self.out
+        try:
+            status = self.process.wait(timeout)
+        except subprocess.TimeoutExpired:
+            return None
+        self.took_s = time.perf_counter() - self.started
+        out = Path(self.folder.name) / "out.pickle"
+        if out.exists():
+            with out.open("rb") as f:
+                self.out = pickle.load(f)
+        else:  # (killed: out of memory, a signal)
+            self.out = f"its process ended with status {status}"
+        self.folder.cleanup()
+        return self.out
+
+    def cancel(self) -> None:
+        self.process.kill()
+        self.process.wait()
+        self.folder.cleanup()
+
+
+def fit_job() -> None:
+    """The process of a `SoftnessFitJob`: its folder's in.pickle fitted into out.pickle."""
+    os.nice(10)  # (the node's updates first)
+    job = Path(sys.argv[1])
+    with (job / "in.pickle").open("rb") as f:
+        path, start_pose, measurements, settings, t_ns = pickle.load(f)
+    out: tuple[Settings, dict[str, float]] | str
+    try:
+        config = dataclasses.replace(load_config(path), start_pose=start_pose)
+        out = softness_fitted(config, measurements, settings, t_ns)
+    except Exception as err:  # (one line back to the node, which keeps the model's softness)
+        out = f"{type(err).__name__}: {err}"
+    with (job / "out.partial").open("wb") as f:
+        pickle.dump(out, f)
+    (job / "out.partial").replace(job / "out.pickle")
+
+
 class Stream:
     """The streaming estimator: samples in, fixed-lag estimates out (`estimator.solver.
     fixed_lag`).
@@ -132,6 +240,9 @@ class Stream:
     clock: the time of arrival of a pushed message (seconds; `time.perf_counter`).
     diagnose: run the unmodeled-contact and slip detectors on the newest knots
         (`Update.events`; `estimator.diagnose.online`, `estimator.diagnose.slip`).
+    settings.fit_softness = "first_window" (and a config that does not give the softness):
+        the softness fitted on the first fit_softness_s of knots (`SoftnessFitJob`; its
+        result in `softness_fit`), the window re-solved with it once it is done.
     """
 
     def __init__(
@@ -168,6 +279,20 @@ class Stream:
         # (newest key readied, arrival of the sample that readied it), oldest first
         self.ready_marks: deque[tuple[int, float]] = deque()
         self.counts = Counts()
+        # the contact-softness fit: every sample kept until the fit's knots are ready
+        fits = (
+            settings.fit_softness == "first_window"
+            and settings.method == "physics"
+            and not settings.sets_softness
+        )
+        self.fit_keys = round(settings.fit_softness_s / self.h) if fits else 0
+        self.fit_buffers = (
+            {name: _Buffer(name, s.kind) for name, s in config.streams.items()} if fits else None
+        )
+        self.fit_job: SoftnessFitJob | None = None
+        self.batch_iterations = Settings.from_config(config).max_iterations
+        self.softness_fit: dict[str, float] = {}  # the fit, once applied
+        self.pending_event = ""  # (reported with the next update)
 
     # -- in --------------------------------------------------------------------------------
 
@@ -198,6 +323,8 @@ class Stream:
             return
         self.counts.samples += 1
         self.buffers[sample.stream].add(sample)
+        if self.fit_buffers is not None:
+            self.fit_buffers[sample.stream].add(sample)
         self.first_t.setdefault(sample.stream, sample.t_ns)
         self.last_t[sample.stream] = sample.t_ns
         self._advance_ready(arrival)
@@ -214,6 +341,7 @@ class Stream:
         them, or (a backlog) one per half lag of new keys (`BACKLOG_STEP`).
         min_knots: wait until at least this many keys are ready (fewer, larger solves:
         throughput for latency)."""
+        self._fit_softness()
         if self.ready_until - self.solved_until < min_knots:
             return
         while self.lag is not None and self.ready_until > self.solved_until:
@@ -233,6 +361,12 @@ class Stream:
         for sample in self.extractor.flush():
             self.push_sample(sample, arrival)
         yield from self.update()
+        if self.fit_job is not None and self.fit_job.result() is None:
+            self.fit_job.cancel()  # (the stream ended before its fit)
+            self.counts.events.append(
+                "the contact-softness fit was still running at the end of the stream: the "
+                "model's own softness was used throughout"
+            )
         if self.lag is None:
             return
         start = self.clock()
@@ -244,6 +378,47 @@ class Stream:
             if self.detector is not None and self.slips is not None:
                 update.events.extend(self.detector.close() + self.slips.close())
             yield update
+
+    # -- the contact softness ----------------------------------------------------------------
+
+    def _fit_softness(self) -> None:
+        """Start the fit once its knots are ready; apply it once it is done."""
+        lag = self.lag
+        if lag is None:
+            return
+        if self.fit_buffers is not None and self.ready_until >= self.fit_keys:
+            measurements = _as_measurements(self.config, self.fit_buffers, self.bad_counts)
+            # (solved as the batch solves, not with an update's few iterations)
+            batch = replace(self.settings, max_iterations=self.batch_iterations)
+            self.fit_job = SoftnessFitJob(
+                self.config, measurements, batch, lag.t_ns(0, self.fit_keys)
+            )
+            self.fit_buffers = None
+        job = self.fit_job
+        out = None if job is None else job.result()
+        if job is None or out is None:
+            return
+        self.fit_job = None
+        if isinstance(out, str):
+            event = f"the contact-softness fit failed ({out}): the model's own softness kept"
+        else:
+            fitted, fit = out
+            self.settings = replace(
+                self.settings,
+                softness_eps_scale=fitted.softness_eps_scale,
+                softness_kappa_scale=fitted.softness_kappa_scale,
+                model_softness_std=fitted.model_softness_std,
+            )
+            self.softness_fit = fit
+            lag.retune(self.settings, self.batch_iterations)
+            event = (
+                f"contact softness fitted on the stream's first {self.settings.fit_softness_s:g} "
+                f"s in {job.took_s:.0f} s: ε × {fit['eps_scale']:.3f} ×/÷ "
+                f"{1 + fit['eps_scale_sigma']:.3f}, κ × {fit['kappa_scale']:.3f} ×/÷ "
+                f"{1 + fit['kappa_scale_sigma']:.3f}; the window re-solved with it"
+            )
+        self.counts.events.append(event)
+        self.pending_event = event
 
     # -- the knot grid ---------------------------------------------------------------------
 
@@ -312,30 +487,9 @@ class Stream:
         """The buffered samples around the window, as the batch reader's arrays."""
         assert self.lag is not None
         keep_from = int(self.lag.t_ns(self.lag.first, self.lag.first + 1)[0]) - WINDOW_MARGIN_NS
-        out = {}
-        bad = self.extractor.bad_counts()
-        for name, stream in self.config.streams.items():
-            b = self.buffers[name]
+        for b in self.buffers.values():
             b.trim(keep_from)
-            components = STREAM_COMPONENTS[stream.kind]
-            values = (
-                np.stack(b.values)
-                if b.values
-                else np.zeros((0, len(stream.elements), len(components)))
-            )
-            out[name] = Measurement(
-                stream=name,
-                kind=stream.kind,
-                topic=stream.topic,
-                element_type=stream.element_type,
-                elements=stream.elements,
-                components=components,
-                t_ns=np.array(b.t, dtype=np.int64),
-                log_time_ns=np.array(b.log_t, dtype=np.int64),
-                values=values,
-                bad=bad.get(name, BadSampleCounts()),
-            )
-        return out
+        return _as_measurements(self.config, self.buffers, self.bad_counts)
 
     def _published(self, step: LagStep, backlog: int, start: float) -> Update:
         events = []
@@ -349,16 +503,17 @@ class Stream:
         c.updates += 1
         c.knots_newest += len(step.newest)
         c.knots_smoothed += len(step.smoothed)
-        event = ""
+        event, self.pending_event = self.pending_event, ""
         if step.diverged:
             c.divergences += 1
             assert self.lag is not None
             t = (step.estimate.t_ns[-1] - self.lag.t0_ns) / 1e9
-            event = (
+            divergence = (
                 f"divergence {t:.3f} s into the stream: {step.diverged}; window reset from the "
                 "measurements"
             )
-            c.events.append(event)
+            c.events.append(divergence)
+            event = f"{event}; {divergence}" if event else divergence
         return Update(
             step.estimate,
             step.newest,

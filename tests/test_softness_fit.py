@@ -3,19 +3,23 @@ softness (estimator.solver.softness_fit)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from estimator.config import load_config
 from estimator.io.logs import read_log
+from estimator.io.logs.source import open_log
 from estimator.io.state_topics import at_times, read_ground_truth, read_metadata
 from estimator.knots import knot_grid
 from estimator.problem import build_problem
-from estimator.run import initial_trajectory
+from estimator.run import initial_trajectory, softness_fitted
 from estimator.settings import Settings
 from estimator.solver.softness_fit import fit_softness
 from estimator.solver.window import solve_window
+from estimator.stream import Stream
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -44,3 +48,32 @@ def test_the_fit_brings_a_stiffer_robots_height_to_its_mocap():
     assert all(0 < s < 0.1 for s in fit.sigma)
     assert abs(height_error(fitted.qpos)) < 0.5 * abs(height_error(plain.qpos))
     assert abs(height_error(plain.qpos)) > 5e-5  # there is an error to remove
+
+
+def test_a_stream_fits_its_start_as_a_batch_estimate_fits_the_log():
+    """recordings/humanoid_push.mcap through the Stream with the default fit (on its first
+    1 s here): the fit runs in a process of its own while the stream goes on, finds what
+    the batch's fit of the same knots finds, is reported, and the stream's next solves take
+    it (the model's softness scaled) without a divergence."""
+    log = ROOT / "recordings" / "humanoid_push.mcap"
+    config = load_config(ROOT / "configs" / "humanoid_push.toml")
+    settings = replace(Settings.from_config(config), max_iterations=2, fit_softness_s=1.0)
+    stream = Stream(config, settings, lag_s=0.5)
+    updates = []
+    for raw in open_log(log):
+        stream.push(raw)
+        updates += stream.update()
+        if stream.fit_job is not None:  # (waited for, as a stream longer than the fit has it)
+            assert stream.fit_job.result(timeout=300) is not None
+    updates += stream.close()
+    fit = stream.softness_fit
+    assert fit and stream.settings.softness_eps_scale == fit["eps_scale"] != 1.0
+    assert stream.settings.max_iterations == 2  # (the updates' own, not the fit's)
+    reported = [i for i, u in enumerate(updates) if "contact softness fitted" in u.event]
+    assert len(reported) == 1 and stream.counts.divergences == 0
+    assert len(updates) - reported[0] > 10  # the stream went on with it
+    measurements = read_log(log, config).measurements
+    t_ns = knot_grid(measurements, stream.h)[: stream.fit_keys]
+    batch = replace(settings, max_iterations=Settings.from_config(config).max_iterations)
+    _, expected = softness_fitted(config, measurements, batch, t_ns)
+    assert fit == pytest.approx(expected, rel=1e-9)

@@ -103,6 +103,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"each update (default {RELINEARIZE_S:g})",
     )
     parser.add_argument(
+        "--fit-softness",
+        choices=("first_window", "none"),
+        help="first_window: fit the contact softness on the stream's first fit_softness_s "
+        "(2 s) as `physfuse estimate` fits it on a log's, in a process of its own, publishing "
+        "with the model's own meanwhile, then re-solve the window with it; none: the model's "
+        "own throughout (default: the config's fit_softness, first_window unless it gives the "
+        "softness)",
+    )
+    parser.add_argument(
         "--stale",
         type=float,
         default=0.25,
@@ -150,9 +159,9 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.false_alarms_per_min <= 0:
         raise ConfigError(f"--false-alarms-per-min {args.false_alarms_per_min}: must be > 0")
-    settings = replace(
-        Settings.from_config(config), max_iterations=args.iterations, fit_softness="none"
-    )
+    settings = replace(Settings.from_config(config), max_iterations=args.iterations)
+    if args.fit_softness is not None:
+        settings = replace(settings, fit_softness=args.fit_softness)
     check_for_estimate(config, settings)
     check_source(args.source)
     if args.out is not None and not args.out.parent.is_dir():
@@ -386,4 +395,5 @@ class Status:
             "bad": {name: b.as_dict() for name, b in self.bad.items()},
             "knot_s": stream.h,
             "events": self.events,
+            "softness_fit": stream.softness_fit,  # (empty: none applied)
         }

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import mujoco
 import numpy as np
@@ -87,6 +87,7 @@ class FixedLag:
         self.prior: MarginalPrior | None = None
         self.published = 0  # the next knot (global) whose newest estimate is due
         self.recent_cost: deque[float] = deque(maxlen=50)  # cost per knot of recent solves
+        self.converge = 0  # the iterations of the next solve, if more than an update's
         # MuJoCo's derivatives, reused where a knot moved less than 1 mm or mrad since they
         # were taken (trot in half-lag steps: 182 against 165 knots/s at 0.1 mm, smoothed
         # base 0.153 and 0.154 mm; at 1 cm humanoid_push's torso 0.124 against 0.089 mm)
@@ -103,7 +104,10 @@ class FixedLag:
         if stop - self.first < MIN_KEYS:
             return None
         t_ns = self.t_ns(self.first, stop)
-        problem = build_problem(self.config, measurements, self.settings, t_ns, self.compiled)
+        settings = self.settings
+        if self.converge:  # (`retune`)
+            settings, self.converge = replace(settings, max_iterations=self.converge), 0
+        problem = build_problem(self.config, measurements, settings, t_ns, self.compiled)
         qpos, bias = self._start(measurements, t_ns, problem.nb)
         if not len(self.qpos) and unanchored(self.model, measurements):
             # no mocap: the first window holds the start pose's x, y, yaw (as `run.smooth`)
@@ -184,6 +188,17 @@ class FixedLag:
         measurements."""
         self.qpos = np.zeros((0, self.model.nq))
         self.prior = None
+
+    def retune(self, settings: Settings, iterations: int) -> None:
+        """Take new settings (a contact softness fitted while the stream ran): the next
+        advance re-solves the whole window with them, up to `iterations` iterations, from its
+        solution so far (not from the measurements: through a mocap dropout they do not hold
+        the base; nor in an update's few iterations: H1's pelvis stayed near the old depth,
+        0.20 mm off against 0.11), MuJoCo's derivatives retaken."""
+        self.settings = settings
+        self.converge = iterations
+        self.derivatives.clear()
+        self.recent_cost.clear()
 
     # -- the start of a solve ------------------------------------------------------------------
 

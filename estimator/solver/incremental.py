@@ -99,6 +99,12 @@ class IncrementalLag(FixedLag):
         super().reset()
         self.kept = None
 
+    def retune(self, settings: Settings, iterations: int) -> None:
+        super().retune(settings, iterations)
+        self.kept = None  # (its rows are the old model's: whole solves until a key leaves)
+        self.close()  # (the engines hold the old model)
+        self.dynamics = None
+
     # -- the kept system ------------------------------------------------------------------------
 
     def _begin(self, measurements: Mapping[str, Measurement]) -> None:
