@@ -288,7 +288,7 @@ class IncrementalLag(FixedLag):
             dynamics=self.dynamics,
         )
         step = LagStep(
-            estimate, newest, smoothed, self.first, None, "", window.known_sigma, W - tail
+            estimate, newest, smoothed, self.first, None, "", window.known_sigma, int(W - tail)
         )
         self.published = self.first + W - 1
         for _ in range(leave):
