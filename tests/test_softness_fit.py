@@ -62,7 +62,7 @@ def test_a_stream_fits_its_start_as_a_batch_estimate_fits_the_log():
     updates = []
     for raw in open_log(log):
         stream.push(raw)
-        updates += stream.update()
+        updates += stream.update(min_knots=10)
         if stream.fit_job is not None:  # (waited for, as a stream longer than the fit has it)
             assert stream.fit_job.result(timeout=300) is not None
     updates += stream.close()
