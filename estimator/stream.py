@@ -363,10 +363,12 @@ class Stream:
         yield from self.update()
         if self.fit_job is not None and self.fit_job.result() is None:
             self.fit_job.cancel()  # (the stream ended before its fit)
-            self.counts.events.append(
+            event = (
                 "the contact-softness fit was still running at the end of the stream: the "
                 "model's own softness was used throughout"
             )
+            self.counts.events.append(event)
+            self.pending_event = f"{self.pending_event}; {event}" if self.pending_event else event
         if self.lag is None:
             return
         start = self.clock()
@@ -394,6 +396,11 @@ class Stream:
                 self.config, measurements, batch, lag.t_ns(0, self.fit_keys)
             )
             self.fit_buffers = None
+            self.pending_event = (
+                f"fitting the contact softness on the stream's first {batch.fit_softness_s:g} s "
+                "in a process of its own; the model's own until then"
+            )
+            self.counts.events.append(self.pending_event)
         job = self.fit_job
         out = None if job is None else job.result()
         if job is None or out is None:
@@ -418,7 +425,7 @@ class Stream:
                 f"{1 + fit['kappa_scale_sigma']:.3f}; the window re-solved with it"
             )
         self.counts.events.append(event)
-        self.pending_event = event
+        self.pending_event = f"{self.pending_event}; {event}" if self.pending_event else event
 
     # -- the knot grid ---------------------------------------------------------------------
 
