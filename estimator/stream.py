@@ -370,8 +370,7 @@ class Stream:
                 "the contact-softness fit was still running at the end of the stream: the "
                 "model's own softness was used throughout"
             )
-            self.counts.events.append(event)
-            self.pending_event = f"{self.pending_event}; {event}" if self.pending_event else event
+            self._report(event)
         if self.lag is None:
             return
         start = self.clock()
@@ -399,11 +398,10 @@ class Stream:
                 self.config, measurements, batch, lag.t_ns(0, self.fit_keys)
             )
             self.fit_buffers = None
-            self.pending_event = (
+            self._report(
                 f"fitting the contact softness on the stream's first {batch.fit_softness_s:g} s "
                 "in a process of its own; the model's own until then"
             )
-            self.counts.events.append(self.pending_event)
         job = self.fit_job
         out = None if job is None else job.result()
         if job is None or out is None:
@@ -427,6 +425,10 @@ class Stream:
                 f"{1 + fit['eps_scale_sigma']:.3f}, κ × {fit['kappa_scale']:.3f} ×/÷ "
                 f"{1 + fit['kappa_scale_sigma']:.3f}; the window re-solved with it"
             )
+        self._report(event)
+
+    def _report(self, event: str) -> None:
+        """An event for the run's counts and the terminal (the next update's `event`)."""
         self.counts.events.append(event)
         self.pending_event = f"{self.pending_event}; {event}" if self.pending_event else event
 
@@ -513,17 +515,15 @@ class Stream:
         c.updates += 1
         c.knots_newest += len(step.newest)
         c.knots_smoothed += len(step.smoothed)
-        event, self.pending_event = self.pending_event, ""
         if step.diverged:
             c.divergences += 1
             assert self.lag is not None
             t = (step.estimate.t_ns[-1] - self.lag.t0_ns) / 1e9
-            divergence = (
+            self._report(
                 f"divergence {t:.3f} s into the stream: {step.diverged}; window reset from the "
                 "measurements"
             )
-            c.events.append(divergence)
-            event = f"{event}; {divergence}" if event else divergence
+        event, self.pending_event = self.pending_event, ""
         return Update(
             step.estimate,
             step.newest,
