@@ -357,6 +357,7 @@ def _fit_softness(
         "eps_scale_sigma": fit.sigma[0],
         "kappa_scale_sigma": fit.sigma[1],
         "rounds": float(fit.rounds),
+        "settled": float(fit.settled),
     }
 
 

@@ -423,7 +423,9 @@ class Stream:
                 f"contact softness fitted on the stream's first {self.settings.fit_softness_s:g} "
                 f"s in {job.took_s:.0f} s: ε × {fit['eps_scale']:.3f} ×/÷ "
                 f"{1 + fit['eps_scale_sigma']:.3f}, κ × {fit['kappa_scale']:.3f} ×/÷ "
-                f"{1 + fit['kappa_scale_sigma']:.3f}; the window re-solved with it"
+                f"{1 + fit['kappa_scale_sigma']:.3f}"
+                f"{'' if fit.get('settled', 1.0) else ' (still moving when its rounds ran out)'}"
+                "; the window re-solved with it"
             )
         self._report(event)
 

@@ -50,6 +50,22 @@ def test_the_fit_brings_a_stiffer_robots_height_to_its_mocap():
     assert abs(height_error(plain.qpos)) > 5e-5  # there is an error to remove
 
 
+def test_a_fit_stopped_while_still_moving_is_as_uncertain_as_its_last_step(monkeypatch):
+    """Cut to one round, the fit on Go2's window (κ × 0.94 simulated) is stopped mid-way: its
+    σ is no smaller than that round's step, not the curvature's (which would claim ~1%)."""
+    config = load_config(ROOT / "configs" / "go2.toml")
+    log = read_log(ROOT / "recordings" / "go2.mcap", config)
+    t_ns = knot_grid(log.measurements, 0.002)[250:650]
+    problem = build_problem(config, log.measurements, Settings(), t_ns)
+    qpos = initial_trajectory(problem.model, log.measurements, t_ns)
+    monkeypatch.setattr("estimator.solver.softness_fit.FIT_ROUNDS", 1)
+    fit, _ = fit_softness(problem, qpos, np.zeros((problem.T, problem.nb)))
+    step = np.abs(np.log([fit.eps_scale, fit.kappa_scale]))  # θ from 0 in one round
+    assert fit.rounds == 1 and not fit.settled
+    assert np.max(step) > 0.005  # (it was still moving)
+    assert np.all(np.array(fit.sigma) >= step - 1e-12)
+
+
 def test_a_stream_fits_its_start_as_a_batch_estimate_fits_the_log():
     """recordings/humanoid_push.mcap through the Stream with the default fit (on its first
     1 s here): the fit runs in a process of its own while the stream goes on, finds what

@@ -431,8 +431,9 @@ def _print(report: dict[str, Any], summary: Summary, printed: list[str]) -> None
     fit = summary.softness_fit
     if fit:
         print(
-            f"contact softness fitted on the log's start ({fit['rounds']:.0f} rounds): the "
-            f"model's ε × {fit['eps_scale']:.4g} ± {fit['eps_scale_sigma']:.2g}, κ × "
+            f"contact softness fitted on the log's start ({fit['rounds']:.0f} rounds"
+            f"{'' if fit.get('settled', 1.0) else ', still moving: σ at least its last step'}"
+            f"): the model's ε × {fit['eps_scale']:.4g} ± {fit['eps_scale_sigma']:.2g}, κ × "
             f"{fit['kappa_scale']:.4g} ± {fit['kappa_scale_sigma']:.2g}"
         )
     print(
