@@ -53,15 +53,41 @@ def with_covariance(
     result: WindowResult, keys: range | None = None, problem: Problem | None = None
 ) -> WindowResult:
     """`result` with the marginal standard deviations of x_k at `keys` (None: every knot) from
-    its last linearization (GTSAM), and their warnings; with the problem, also the variance
-    of the model's uncertain parameters (`consider_variance`)."""
+    its last linearization, and their warnings; with the problem, also the variance of the
+    model's uncertain parameters (`consider_variance`) and of where the solve stopped
+    (`untaken_step`)."""
     if result.system is None:
         return result
     warnings = list(result.warnings)
-    std = result.system.marginal_std(result.qpos_std.shape[1], warnings, keys)
+    nv = result.qpos_std.shape[1]
+    std = result.system.marginal_std(nv, warnings, keys)
     if problem is not None:  # and the model's uncertain parameters' share
-        std = np.sqrt(std**2 + consider_variance(problem, result))
+        variance = std**2 + consider_variance(problem, result)
+        untaken = untaken_step(result)
+        if untaken is not None:
+            variance += untaken[:, :nv] ** 2
+        std = np.sqrt(variance)
     return replace(result, qpos_std=std, warnings=warnings)
+
+
+def untaken_step(result: WindowResult) -> np.ndarray | None:
+    """(T, nz) what the solve left of the Gauss–Newton step of its last linearization: the
+    quadratic model's minimum less the step taken from there. A solve stops on its relative
+    tolerance, or on a step damped by rejected ones, short of that minimum, and where it
+    stops depends on where it started (a window's overlap, a chunk's start): the estimate is
+    uncertain by that much besides its marginal σ. Small where the solve converged; large
+    where the cost is flat (1e-3 of a window's cost is several σ along its flattest
+    direction) or kinked (a contact arriving: 1% of the step raises the cost). None: no
+    system, or none positive definite at LAMBDA_MIN."""
+    system = result.solved_system
+    if system is None:
+        return None
+    s, ab = system.scaled_band()
+    try:
+        step = system.damped_step(s, ab, LAMBDA_MIN)
+    except np.linalg.LinAlgError:
+        return None
+    return step if result.taken is None else step - result.taken
 
 
 CONSIDER_STEP = 0.01  # relative change of a parameter for its finite difference
