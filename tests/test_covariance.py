@@ -145,3 +145,28 @@ def test_the_reversed_system_gives_the_first_keys_marginal_std():
     first = system.reversed().marginal_std(3, [], range(T - 4, T))[::-1]
     np.testing.assert_allclose(first[:4], expected[:4], rtol=1e-9)
     np.testing.assert_allclose(system.marginal_std(3, [], range(0, T)), expected, rtol=1e-9)
+
+
+def test_a_solve_stopped_short_is_as_uncertain_as_the_step_it_left():
+    """humanoid_push's first 0.6 s, its solve stopped before its first step (a tolerance that
+    the Gauss–Newton step's predicted decrease does not pass): the step it left untaken
+    (`untaken_step`) points at the minimum (re-solved tightly, the minimum is much closer to
+    the stop plus that step than to the stop), and the σ with the problem covers it at every
+    knot."""
+    config = load_config(ROOT / "configs" / "humanoid_push.toml")
+    log = read_log(ROOT / "recordings" / "humanoid_push.mcap", config)
+    t_ns = knot_grid(log.measurements, 0.01)[:60]
+    settings = Settings(tolerance=0.9, fit_softness="none")
+    problem = build_problem(config, log.measurements, settings, t_ns)
+    qpos = initial_trajectory(problem.model, log.measurements, t_ns)
+    short = solve_window(problem, qpos, np.zeros((problem.T, problem.nb)), covariance=False)
+    assert short.taken is None and np.array_equal(short.qpos, qpos)  # stopped at once
+    tight = replace(problem, settings=replace(settings, tolerance=1e-12, max_iterations=60))
+    best = solve_window(tight, short.qpos, short.bias, covariance=False)
+    untaken = covariance.untaken_step(short)
+    assert untaken is not None
+    left = best.qpos[:, :3] - short.qpos[:, :3]  # the base's position, m
+    assert np.linalg.norm(left) > 1e-4  # it did stop short
+    assert np.linalg.norm(left - untaken[:, :3]) < 0.5 * np.linalg.norm(left)  # (0.21)
+    std = covariance.with_covariance(short, None, problem).qpos_std
+    assert np.all(std >= np.abs(untaken[:, : problem.model.nv]) - 1e-15)
