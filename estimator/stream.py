@@ -27,9 +27,11 @@ from __future__ import annotations
 import dataclasses
 import os
 import pickle
+import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
@@ -180,7 +182,13 @@ class SoftnessFitJob:
         # one thread, MuJoCo's and BLAS's (`fit_job`: at the lowest priority)
         one = {"PHYSFUSE_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
         self.process = subprocess.Popen(
-            [sys.executable, "-c", "from estimator.stream import fit_job; fit_job()", str(job)],
+            [
+                sys.executable,
+                "-c",
+                "from estimator.stream import fit_job; fit_job()",
+                str(job),
+                str(os.getpid()),  # (the node: `_end_with`)
+            ],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
@@ -214,10 +222,23 @@ class SoftnessFitJob:
         self.folder.cleanup()
 
 
+ORPHAN_POLL_S = 0.5  # how often a fit's process checks that its node is still there
+
+
+def _end_with(parent: int, job: Path) -> None:
+    """A fit's watchdog: once the node that started it is gone (killed: nobody waits for the
+    fit any more), remove the job's folder and end the process, not hold a core for nothing."""
+    while os.getppid() == parent:
+        time.sleep(ORPHAN_POLL_S)
+    shutil.rmtree(job, ignore_errors=True)
+    os._exit(1)
+
+
 def fit_job() -> None:
     """The process of a `SoftnessFitJob`: its folder's in.pickle fitted into out.pickle."""
     os.nice(19)  # (the node's updates first)
     job = Path(sys.argv[1])
+    threading.Thread(target=_end_with, args=(int(sys.argv[2]), job), daemon=True).start()
     with (job / "in.pickle").open("rb") as f:
         path, start_pose, measurements, settings, t_ns = pickle.load(f)
     out: tuple[Settings, dict[str, float]] | str

@@ -3,6 +3,11 @@ softness (estimator.solver.softness_fit)."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import textwrap
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -93,3 +98,53 @@ def test_a_stream_fits_its_start_as_a_batch_estimate_fits_the_log():
     batch = replace(settings, max_iterations=Settings.from_config(config).max_iterations)
     _, expected = softness_fitted(config, measurements, batch, t_ns)
     assert fit == pytest.approx(expected, rel=1e-9)
+
+
+def _running(pid: int) -> bool:
+    """Whether process pid exists and is not a zombie (an orphan's end waits for whoever
+    reaps it)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except FileNotFoundError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="watches the fit's process through /proc")
+def test_a_fit_whose_node_is_killed_ends_and_takes_its_folder(tmp_path):
+    """A node SIGKILLed while its softness fit runs: the fit's process ends within seconds
+    and its temporary folder with it — no orphan holding a core on the robot's computer."""
+    node = tmp_path / "node.py"
+    node.write_text(
+        textwrap.dedent(
+            f"""
+            import time
+            from dataclasses import replace
+            from pathlib import Path
+            from estimator.config import load_config
+            from estimator.io.logs import read_log
+            from estimator.knots import knot_grid
+            from estimator.settings import Settings
+            from estimator.stream import SoftnessFitJob
+            config = load_config(Path({str(ROOT / "configs" / "humanoid_push.toml")!r}))
+            log = read_log(Path({str(ROOT / "recordings" / "humanoid_push.mcap")!r}), config)
+            settings = replace(Settings.from_config(config), fit_softness_s=1.0)
+            t_ns = knot_grid(log.measurements, 0.01)[:100]
+            job = SoftnessFitJob(config, dict(log.measurements), settings, t_ns)
+            print(job.process.pid, job.folder.name, flush=True)
+            time.sleep(600)
+            """
+        )
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    process = subprocess.Popen([sys.executable, str(node)], stdout=subprocess.PIPE, env=env)
+    assert process.stdout is not None
+    pid, folder = process.stdout.readline().split()
+    assert _running(int(pid)) and Path(folder.decode()).is_dir()
+    process.kill()
+    process.wait()
+    deadline = time.monotonic() + 30
+    while _running(int(pid)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _running(int(pid))
+    assert not Path(folder.decode()).exists()
