@@ -170,6 +170,18 @@ def override(model: mujoco.MjModel, eps: float | None = None, kappa: float | Non
             getattr(model, imp_name)[:] = given.solimp()
 
 
+def kappa_scale_floor(model: mujoco.MjModel) -> float:
+    """The least factor on the model's own contact time constants κ (geoms' and pairs') that
+    every one of them still takes: MuJoCo clamps a κ below 2·timestep (refsafe), so a factor
+    below max 2h/κ moves that contact no further (the paper's κ = 0.02 s at h = 10 ms: no
+    factor below 1). 0 without refsafe or without a time-constant solref."""
+    if model.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_REFSAFE:
+        return 0.0
+    kappa = np.concatenate([model.geom_solref[:, 0], model.pair_solref[:, 0]])
+    kappa = kappa[kappa > 0]
+    return float(np.max(2.0 * model.opt.timestep / kappa)) if len(kappa) else 0.0
+
+
 def scale(model: mujoco.MjModel, eps_scale: float = 1.0, kappa_scale: float = 1.0) -> None:
     """Scale the model's own softness, in place, element by element: ε = (1 − d)/d of every
     solimp's d0 and dwidth times eps_scale, every solref time constant (the (κ, damping ratio)

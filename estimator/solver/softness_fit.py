@@ -15,6 +15,7 @@ from estimator.problem import (
 )
 from estimator.solver.covariance import CONSIDER_STEP, parameter_sensitivities, rows_at
 from estimator.solver.window import WindowResult, solve_window
+from physics.softness import kappa_scale_floor
 from physics.softness import scale as scale_softness
 
 
@@ -58,6 +59,8 @@ def fit_softness(
     base = problem.model
     result = solve_window(problem, qpos, bias, covariance=False)
     M = np.diag(np.full(2, 1.0 / sigma**2))
+    floor = kappa_scale_floor(base)  # (below it MuJoCo clamps κ: the cost is flat there)
+    kappa_min = np.log(floor) if floor > 0 else -np.inf
     rounds = 0
     step = np.zeros(2)
     for rounds in range(1, FIT_ROUNDS + 1):  # noqa: B007
@@ -74,6 +77,9 @@ def fit_softness(
         M = D + CS
         g = np.array([_dot(dr, r) for dr, _, _ in parts]) + theta / sigma**2
         step = -np.linalg.solve(M, g)
+        if theta[1] + step[1] < kappa_min:  # κ held at its floor, ε the model's best with it
+            step[1] = kappa_min - theta[1]
+            step[0] = -(g[0] + M[0, 1] * step[1]) / M[0, 0]
         theta += step
         model = copy.deepcopy(base)
         scale_softness(model, float(np.exp(theta[0])), float(np.exp(theta[1])))
