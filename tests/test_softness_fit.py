@@ -25,6 +25,7 @@ from estimator.settings import Settings
 from estimator.solver.softness_fit import fit_softness
 from estimator.solver.window import solve_window
 from estimator.stream import Stream
+from physics.softness import kappa_scale_floor
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -69,6 +70,22 @@ def test_a_fit_stopped_while_still_moving_is_as_uncertain_as_its_last_step(monke
     assert fit.rounds == 1 and not fit.settled
     assert np.max(step) > 0.005  # (it was still moving)
     assert np.all(np.array(fit.sigma) >= step - 1e-12)
+
+
+def test_a_kappa_at_its_floor_is_held_there_and_the_fit_settles():
+    """humanoid_push's model has the paper's κ = 0.02 s, which at its 10 ms knots is MuJoCo's
+    floor 2h: a factor below 1 changes nothing. The fit holds κ there and settles on ε (the
+    recording simulates ε × 1.2, κ × 1), where it used to step κ below the floor and back
+    every round until the rounds ran out."""
+    config = load_config(ROOT / "configs" / "humanoid_push.toml")
+    log = read_log(ROOT / "recordings" / "humanoid_push.mcap", config)
+    t_ns = knot_grid(log.measurements, 0.01)[:200]
+    problem = build_problem(config, log.measurements, Settings(), t_ns)
+    assert kappa_scale_floor(problem.model) == pytest.approx(1.0)
+    qpos = initial_trajectory(problem.model, log.measurements, t_ns)
+    fit, _ = fit_softness(problem, qpos, np.zeros((problem.T, problem.nb)))
+    assert fit.settled and fit.kappa_scale == pytest.approx(1.0)
+    assert fit.eps_scale == pytest.approx(1.2, rel=0.05)
 
 
 def test_a_stream_fits_its_start_as_a_batch_estimate_fits_the_log():
