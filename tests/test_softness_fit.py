@@ -72,11 +72,32 @@ def test_a_fit_stopped_while_still_moving_is_as_uncertain_as_its_last_step(monke
     assert np.all(np.array(fit.sigma) >= step - 1e-12)
 
 
+def test_a_round_from_a_solve_stopped_short_steps_as_from_a_converged_one(monkeypatch):
+    """A round's step is the joint Gauss–Newton step over (x, θ): from a window solved to a
+    loose tolerance (1e-2: the gradient in x left along the flat directions) it is within
+    15% of the step from the same window solved to convergence. The Schur complement alone,
+    which takes x as at its minimum, steps κ 22% short of it."""
+    config = load_config(ROOT / "configs" / "go2.toml")
+    log = read_log(ROOT / "recordings" / "go2.mcap", config)
+    t_ns = knot_grid(log.measurements, 0.002)[250:650]
+    monkeypatch.setattr("estimator.solver.softness_fit.FIT_ROUNDS", 1)
+    steps = []
+    for settings in (Settings(tolerance=1e-2), Settings(max_iterations=100, tolerance=1e-9)):
+        problem = build_problem(config, log.measurements, settings, t_ns)
+        qpos = initial_trajectory(problem.model, log.measurements, t_ns)
+        fit, _ = fit_softness(problem, qpos, np.zeros((problem.T, problem.nb)))
+        steps.append(np.log([fit.eps_scale, fit.kappa_scale]))
+    loose, converged = steps
+    assert np.max(np.abs(converged)) > 0.01  # (there is a step to take)
+    assert np.max(np.abs(loose - converged)) < 0.15 * np.max(np.abs(converged))
+
+
 def test_a_kappa_at_its_floor_is_held_there_and_the_fit_settles():
     """humanoid_push's model has the paper's κ = 0.02 s, which at its 10 ms knots is MuJoCo's
-    floor 2h: a factor below 1 changes nothing. The fit holds κ there and settles on ε (the
-    recording simulates ε × 1.2, κ × 1), where it used to step κ below the floor and back
-    every round until the rounds ran out."""
+    floor 2h: a factor below 1 changes nothing. The fit holds κ there and settles on ε, the
+    simulated ε × 1.2 within its σ (the window's objective, its masses off by up to 5%, is
+    lowest near ε × 1.28), where it used to step κ below the floor and back every round until
+    the rounds ran out."""
     config = load_config(ROOT / "configs" / "humanoid_push.toml")
     log = read_log(ROOT / "recordings" / "humanoid_push.mcap", config)
     t_ns = knot_grid(log.measurements, 0.01)[:200]
@@ -85,7 +106,7 @@ def test_a_kappa_at_its_floor_is_held_there_and_the_fit_settles():
     qpos = initial_trajectory(problem.model, log.measurements, t_ns)
     fit, _ = fit_softness(problem, qpos, np.zeros((problem.T, problem.nb)))
     assert fit.settled and fit.kappa_scale == pytest.approx(1.0)
-    assert fit.eps_scale == pytest.approx(1.2, rel=0.05)
+    assert abs(np.log(fit.eps_scale / 1.2)) < fit.sigma[0]  # the simulated ε within its σ
 
 
 def test_a_stream_fits_its_start_as_a_batch_estimate_fits_the_log():

@@ -90,6 +90,23 @@ def untaken_step(result: WindowResult) -> np.ndarray | None:
     return step if result.taken is None else step - result.taken
 
 
+def remaining_step(problem: Problem, result: WindowResult, rows: list[np.ndarray]) -> np.ndarray:
+    """(T, nz) the Gauss–Newton step from the solution, −H⁻¹ Jᵀ r(x̂): H and J those of the
+    last linearization, r the rows at the solution (`rows_at`). A solve stops when its last
+    step lowered the cost by less than the tolerance, where the gradient is small in cost but
+    not in the flat directions (zero only at the minimum)."""
+    system = result.solved_system
+    assert system is not None
+    lin = Linearizer(problem)
+    try:
+        at_solution = [replace(b, r=r) for b, r in zip(result.blocks, rows, strict=True)]
+        g = BandedSystem.of(at_solution, lin, result.bias, result.qpos).g
+    finally:
+        lin.close()
+    s, ab = system.scaled_band()
+    return system.damped_steps(s, ab, LAMBDA_MIN, g[..., None])[..., 0]
+
+
 CONSIDER_STEP = 0.01  # relative change of a parameter for its finite difference
 MAX_SPREAD = 0.5  # the sigma points' half-width at most (a scale 1 − σ must stay positive)
 

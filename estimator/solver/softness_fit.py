@@ -13,7 +13,12 @@ from estimator.problem import (
     Problem,
     retract,
 )
-from estimator.solver.covariance import CONSIDER_STEP, parameter_sensitivities, rows_at
+from estimator.solver.covariance import (
+    CONSIDER_STEP,
+    parameter_sensitivities,
+    remaining_step,
+    rows_at,
+)
 from estimator.solver.window import WindowResult, solve_window
 from physics.softness import kappa_scale_floor
 from physics.softness import scale as scale_softness
@@ -49,9 +54,10 @@ def fit_softness(
     """Fit factors θ = (s_ε, s_κ) on the window's model's own contact softness together with
     the window's motion: maximum a posteriori with the prior log-normal around 1 (σ =
     model_softness_std). Each round takes one Gauss–Newton step over (x, θ) through the
-    Schur complement of the solved system — (D − Cᵀ H⁻¹ C) Δθ = −(Jθᵀ r + θ/σ²), with
-    Jθ = ∂r/∂θ of the physics rows (finite differences), C = Jᵀ Jθ, D = Jθᵀ Jθ + 1/σ² —
-    then re-solves the window with the model scaled by exp(θ) from x + S Δθ (S = −H⁻¹ C).
+    Schur complement of the solved system — (D − Cᵀ H⁻¹ C) Δθ = −(Jθᵀ r + θ/σ² + Cᵀ u), with
+    Jθ = ∂r/∂θ of the physics rows (finite differences), C = Jᵀ Jθ, D = Jθᵀ Jθ + 1/σ² and
+    u = −H⁻¹ Jᵀ r the step the window's solve left in x (`remaining_step`) —
+    then re-solves the window with the model scaled by exp(θ) from x + u + S Δθ (S = −H⁻¹ C).
     The mocap sees how deep the robot sits; the physics says how deep the model lets it."""
     sigma = problem.settings.model_softness_std
     names = ("softness_eps", "softness_kappa")
@@ -75,7 +81,10 @@ def fit_softness(
         D += np.eye(2) / sigma**2
         CS = np.array([[np.sum(a[1] * b[2]) for b in parts] for a in parts])  # Cᵀ S = −Cᵀ H⁻¹ C
         M = D + CS
-        g = np.array([_dot(dr, r) for dr, _, _ in parts]) + theta / sigma**2
+        # the step the solve left in x, u = −H⁻¹ gₓ (zero at its minimum), enters as the
+        # joint step's: M Δθ = −(g_θ + Cᵀ u), Δx = u + S Δθ
+        u = remaining_step(problem, result, r)
+        g = np.array([_dot(dr, r) + np.sum(C * u) for dr, C, _ in parts]) + theta / sigma**2
         step = -np.linalg.solve(M, g)
         if theta[1] + step[1] < kappa_min:  # κ held at its floor, ε the model's best with it
             step[1] = kappa_min - theta[1]
@@ -83,7 +92,7 @@ def fit_softness(
         theta += step
         model = copy.deepcopy(base)
         scale_softness(model, float(np.exp(theta[0])), float(np.exp(theta[1])))
-        dx = np.stack([S for _, _, S in parts], axis=-1) @ step  # S Δθ
+        dx = u + np.stack([S for _, _, S in parts], axis=-1) @ step  # u + S Δθ
         nv = problem.model.nv
         problem = replace(problem, model=model)
         start_q = retract(model, result.qpos, dx[:, :nv])
