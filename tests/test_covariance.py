@@ -149,9 +149,9 @@ def test_the_reversed_system_gives_the_first_keys_marginal_std():
 
 def test_a_solve_stopped_short_is_as_uncertain_as_the_step_it_left():
     """humanoid_push's first 0.6 s, its solve stopped before its first step (a tolerance that
-    the Gauss–Newton step's predicted decrease does not pass): the step it left untaken
-    (`untaken_step`) points at the minimum (re-solved tightly, the minimum is much closer to
-    the stop plus that step than to the stop), and the σ with the problem covers it at every
+    the Gauss–Newton step's predicted decrease does not pass): the step left to the minimum
+    (`remaining_step`) points at it (re-solved tightly, the minimum is much closer to the
+    stop plus that step than to the stop), and the σ with the problem covers it at every
     knot."""
     config = load_config(ROOT / "configs" / "humanoid_push.toml")
     log = read_log(ROOT / "recordings" / "humanoid_push.mcap", config)
@@ -160,13 +160,47 @@ def test_a_solve_stopped_short_is_as_uncertain_as_the_step_it_left():
     problem = build_problem(config, log.measurements, settings, t_ns)
     qpos = initial_trajectory(problem.model, log.measurements, t_ns)
     short = solve_window(problem, qpos, np.zeros((problem.T, problem.nb)), covariance=False)
-    assert short.taken is None and np.array_equal(short.qpos, qpos)  # stopped at once
+    assert np.array_equal(short.qpos, qpos)  # stopped at once
     tight = replace(problem, settings=replace(settings, tolerance=1e-12, max_iterations=60))
     best = solve_window(tight, short.qpos, short.bias, covariance=False)
-    untaken = covariance.untaken_step(short)
-    assert untaken is not None
+    remaining = covariance.remaining_step(
+        problem, short, covariance.rows_at(problem, problem.model, short)
+    )
     left = best.qpos[:, :3] - short.qpos[:, :3]  # the base's position, m
     assert np.linalg.norm(left) > 1e-4  # it did stop short
-    assert np.linalg.norm(left - untaken[:, :3]) < 0.5 * np.linalg.norm(left)  # (0.21)
+    assert np.linalg.norm(left - remaining[:, :3]) < 0.5 * np.linalg.norm(left)  # (0.21)
     std = covariance.with_covariance(short, None, problem).qpos_std
-    assert np.all(std >= np.abs(untaken[:, : problem.model.nv]) - 1e-15)
+    assert np.all(std >= np.abs(remaining[:, : problem.model.nv]) - 1e-15)
+
+
+def test_the_step_left_counts_the_windows_prior():
+    """A window after the first, solved to the default tolerance with the marginal prior its
+    predecessor left: the remaining step from its solution is the Gauss–Newton step of the
+    whole system there, the prior's rows included — solved again from the solution, the
+    window's first linearization gives the same step (without the prior's share of the
+    gradient it did not: 3.4e-6 m became 2.4e-5 m on the hour log's second window)."""
+    config = load_config(ROOT / "configs" / "humanoid_push.toml")
+    log = read_log(ROOT / "recordings" / "humanoid_push.mcap", config)
+    t_ns = knot_grid(log.measurements, 0.01)[:120]
+    settings = Settings(fit_softness="none")
+    problem = build_problem(config, log.measurements, settings, t_ns)
+    qpos = initial_trajectory(problem.model, log.measurements, t_ns)
+    first = solve_window(problem, qpos, np.zeros((problem.T, problem.nb)), False, marginalize=60)
+    assert first.next_prior is not None and first.next_start == 60
+    second_problem = build_problem(config, log.measurements, settings, t_ns[60:])
+    second = solve_window(
+        second_problem, first.qpos[60:], first.bias[60:], False, prior=first.next_prior
+    )
+    assert second.prior is first.next_prior
+    remaining = covariance.remaining_step(
+        second_problem, second, covariance.rows_at(second_problem, second_problem.model, second)
+    )
+    # the step of a system linearized at the solution, the prior included
+    again = replace(second_problem, settings=replace(settings, max_iterations=1, tolerance=1e300))
+    at_solution = solve_window(again, second.qpos, second.bias, False, prior=first.next_prior)
+    system = at_solution.solved_system
+    assert system is not None
+    s, ab = system.scaled_band()
+    expected = system.damped_step(s, ab, covariance.LAMBDA_MIN)
+    assert np.abs(expected).max() > 1e-9  # (the solve stopped short of the minimum)
+    np.testing.assert_allclose(remaining, expected, rtol=1e-6, atol=1e-6 * np.abs(expected).max())

@@ -54,50 +54,40 @@ def with_covariance(
 ) -> WindowResult:
     """`result` with the marginal standard deviations of x_k at `keys` (None: every knot) from
     its last linearization, and their warnings; with the problem, also the variance of the
-    model's uncertain parameters (`consider_variance`) and of where the solve stopped
-    (`untaken_step`)."""
+    model's uncertain parameters (`consider_variance`) and of where the solve stopped: the
+    step still to the minimum (`remaining_step`). A solve stops on its relative tolerance, or
+    on a step damped by rejected ones, short of the minimum, and where it stops depends on
+    where it started (a window's overlap, a chunk's start): the estimate is uncertain by that
+    much besides its marginal σ — small where the solve converged; large where the cost is
+    flat (1e-3 of a window's cost is several σ along its flattest direction) or kinked (a
+    contact arriving: 1% of the step raises the cost)."""
     if result.system is None:
         return result
     warnings = list(result.warnings)
     nv = result.qpos_std.shape[1]
     std = result.system.marginal_std(nv, warnings, keys)
-    if problem is not None:  # and the model's uncertain parameters' share
-        variance = std**2 + consider_variance(problem, result)
-        untaken = untaken_step(result)
-        if untaken is not None:
-            variance += untaken[:, :nv] ** 2
+    if problem is not None and result.solved_system is not None and result.blocks:
+        # (the last linearization may be a step before the solution)
+        at_solution = rows_at(problem, problem.model, result)
+        variance = std**2 + consider_variance(problem, result, at_solution=at_solution)
+        try:
+            remaining = remaining_step(problem, result, at_solution)
+            variance += remaining[:, :nv] ** 2
+        except np.linalg.LinAlgError:  # no system positive definite at LAMBDA_MIN
+            pass
         std = np.sqrt(variance)
     return replace(result, qpos_std=std, warnings=warnings)
 
 
-def untaken_step(result: WindowResult) -> np.ndarray | None:
-    """(T, nz) what the solve left of the Gauss–Newton step of its last linearization: the
-    quadratic model's minimum less the step taken from there. A solve stops on its relative
-    tolerance, or on a step damped by rejected ones, short of that minimum, and where it
-    stops depends on where it started (a window's overlap, a chunk's start): the estimate is
-    uncertain by that much besides its marginal σ. Small where the solve converged; large
-    where the cost is flat (1e-3 of a window's cost is several σ along its flattest
-    direction) or kinked (a contact arriving: 1% of the step raises the cost). None: no
-    system, or none positive definite at LAMBDA_MIN."""
-    system = result.solved_system
-    if system is None:
-        return None
-    s, ab = system.scaled_band()
-    try:
-        step = system.damped_step(s, ab, LAMBDA_MIN)
-    except np.linalg.LinAlgError:
-        return None
-    return step if result.taken is None else step - result.taken
-
-
 def remaining_step(problem: Problem, result: WindowResult, rows: list[np.ndarray]) -> np.ndarray:
     """(T, nz) the Gauss–Newton step from the solution, −H⁻¹ Jᵀ r(x̂): H and J those of the
-    last linearization, r the rows at the solution (`rows_at`). A solve stops when its last
-    step lowered the cost by less than the tolerance, where the gradient is small in cost but
-    not in the flat directions (zero only at the minimum)."""
+    last linearization, r the rows at the solution (`rows_at`) and the window's marginal
+    prior at it. A solve stops when its last step lowered the cost by less than the
+    tolerance, where the gradient is small in cost but not in the flat directions (zero only
+    at the minimum)."""
     system = result.solved_system
     assert system is not None
-    lin = Linearizer(problem)
+    lin = Linearizer(problem, result.prior)
     try:
         at_solution = [replace(b, r=r) for b, r in zip(result.blocks, rows, strict=True)]
         g = BandedSystem.of(at_solution, lin, result.bias, result.qpos).g
@@ -186,7 +176,10 @@ def parameter_sensitivities(
 
 
 def consider_variance(
-    problem: Problem, result: WindowResult, parameters: tuple[str, ...] = tuple(CONSIDERED)
+    problem: Problem,
+    result: WindowResult,
+    parameters: tuple[str, ...] = tuple(CONSIDERED),
+    at_solution: list[np.ndarray] | None = None,
 ) -> np.ndarray:
     """(T, nv) the variance the estimate inherits from the model's uncertain parameters,
     which it does not estimate (Schmidt's consider covariance): per parameter θ — the contact
@@ -196,20 +189,17 @@ def consider_variance(
     solution: the physics, and the sensors predicted through θ — a force/torque sensor
     through the contacts; secants to θ ± σ_θ) adds (S_θ σ_θ)², as its mean over the window
     per dof. A contact softer than modeled lets the robot sit lower: the height's variance
-    grows by that much."""
+    grows by that much. `at_solution`: the rows at the solution (`rows_at`), if computed."""
     system = result.solved_system
     nv = problem.model.nv
     variance = np.zeros((problem.T, nv))
     if system is None or not result.blocks:
         return variance
-    at_solution = None
     sides: list[tuple[str, float]] = []  # (parameter, ±its spread)
     for name in parameters:
         sigma = getattr(problem.settings, CONSIDERED[name][1])
         if sigma <= 0:
             continue
-        if at_solution is None:  # (the linearization may be a step before the solution)
-            at_solution = rows_at(problem, problem.model, result)
         # the two points θ ± σ_θ (the unscented transform's, in one parameter): the
         # estimate's variance ½ (Δ₊² + Δ₋²) with Δ± = S± σ_θ from the secants to each —
         # a contact's force is far from linear in its softness (the tangent at θ overstated a
@@ -219,7 +209,8 @@ def consider_variance(
         sides.append((name, -spread))
     if not sides:
         return variance
-    assert at_solution is not None
+    if at_solution is None:  # (the linearization may be a step before the solution)
+        at_solution = rows_at(problem, problem.model, result)
     try:
         S = [S for _, _, S in parameter_sensitivities(problem, result, system, sides, at_solution)]
     except np.linalg.LinAlgError:

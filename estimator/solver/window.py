@@ -48,9 +48,7 @@ class WindowResult:
     blocks: list[Block] = field(default_factory=list)
     next_prior: MarginalPrior | None = None  # for the window that starts at `next_start`
     next_start: int | None = None  # the key where the next window starts (`marginalize`)
-    # the step taken from the last linearization (None: the solve stopped there), for the
-    # step the stop left untaken (`covariance.untaken_step`)
-    taken: np.ndarray | None = None
+    prior: MarginalPrior | None = None  # the window's own (its rows' share of the gradient)
 
 
 def solve_window(
@@ -85,11 +83,9 @@ def solve_window(
         converged = False
         it = 0
         system = None
-        taken = None
         for it in range(1, p.settings.max_iterations + 1):
             if it > 1:
                 blocks = lin.linearize(qpos, bias)
-            taken = None
             at = (qpos, bias)
             system = BandedSystem.of(blocks, lin, bias, qpos)
             s, ab = system.scaled_band()
@@ -116,7 +112,7 @@ def solve_window(
             if converged:
                 break
             decrease = (cost - cost_new) / max(cost, 1e-300)
-            qpos, bias, cost, by_type, taken = q_new, b_new, cost_new, by_type_new, dx
+            qpos, bias, cost, by_type = q_new, b_new, cost_new, by_type_new
             lam = max(lam / 10.0, LAMBDA_MIN)
             if decrease < p.settings.tolerance:
                 converged = True
@@ -137,7 +133,7 @@ def solve_window(
             system,
             blocks,
             None,
-            taken=taken,
+            prior=prior,
         )
         if marginalize is not None and blocks:
             start = (
