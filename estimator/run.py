@@ -421,9 +421,7 @@ WINDOW_MARGIN_NS = 1_000_000_000  # samples kept around a window: interpolation,
 
 def samples_within(m: Measurement, t0_ns: int, t1_ns: int) -> Measurement:
     """The samples of m within [t0, t1] ± WINDOW_MARGIN_NS (a window's problem needs no more)."""
-    i0 = int(np.searchsorted(m.t_ns, t0_ns - WINDOW_MARGIN_NS, side="left"))
-    i1 = int(np.searchsorted(m.t_ns, t1_ns + WINDOW_MARGIN_NS, side="right"))
-    return replace(m, t_ns=m.t_ns[i0:i1], log_time_ns=m.log_time_ns[i0:i1], values=m.values[i0:i1])
+    return m.between(t0_ns - WINDOW_MARGIN_NS, t1_ns + WINDOW_MARGIN_NS + 1)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -419,6 +419,24 @@ def test_markers_missing_from_a_sample_are_left_out_of_it(humanoid, mocap, tmp_p
         )
 
 
+def test_a_recording_sent_in_parts_holds_what_one_sent_whole_holds(
+    humanoid, mocap, tmp_path, monkeypatch
+):
+    """A long estimate goes to Rerun a part at a time (its buffers hold a part); the knots and
+    the log's samples of every part, none twice, none lost at a part's edge."""
+    model, estimate = humanoid
+    _, log, whole = mocap
+    monkeypatch.setattr(visualize, "RECORDING_PART_KNOTS", 7)  # (not a divisor of T)
+    assert estimate.T > 3 * 7 and estimate.T % 7
+    path = visualize.write_recording(estimate, model, log, path=tmp_path / "parts.rrd")
+    parts = read_recording(path)
+    assert parts.keys() == whole.keys()
+    for name, entity in whole.items():
+        assert parts[name].time_ns == entity.time_ns, name
+        assert parts[name].rows == entity.rows, name
+        assert parts[name].static == entity.static, name
+
+
 # -- other geoms, inputs, serving -------------------------------------------------------------
 SHAPES_XML = """\
 <mujoco>

@@ -36,9 +36,10 @@ With a diagnosis (`physfuse diagnose`, estimator/diagnose):
     plots/diagnostics/<body>                the detector's statistic over its threshold per
                                             knot (> 1: alarm), plots/diagnostics/threshold at 1
 
-Every per-knot array goes out in bulk with `send_columns`; NaN samples (a knot without that
-factor) are left out of their series. One blueprint: the 3D view on the left, tabs on the right
-(residuals, contact forces, IMU biases, uncertainty). Only this module imports Rerun.
+Every per-knot array goes out in bulk with `send_columns`, RECORDING_PART_KNOTS knots at a
+time, each part flushed; NaN samples (a knot without that factor) are left out of their
+series. One blueprint: the 3D view on the left, tabs on the right (residuals, contact forces,
+IMU biases, uncertainty). Only this module imports Rerun.
 """
 
 from __future__ import annotations
@@ -90,6 +91,9 @@ POSE_KINDS = ("pose", "tf", "rigid_bodies")
 DEFAULT_GRPC_PORT = 9876
 DEFAULT_WEB_PORT = 9090
 LIVE_FLUSH_TIMEOUT_S = 60.0  # never wait forever on a viewer that went away
+# knots sent between flushes: the SDK's buffers hold a part, not the recording (writing a
+# 10-minute humanoid_push estimate with its log: RSS +222 MB at once, +52 MB in these parts)
+RECORDING_PART_KNOTS = 6000
 
 _G = mujoco.mjtGeom
 _J = mujoco.mjtJoint
@@ -285,6 +289,7 @@ class LiveRecording:
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         _log_geoms(self.rec, model)
         self.dofs = dof_names(model)
+        self.bodies: set[int] = set()  # in contact in an update so far (`_log_contacts`)
 
     def log(self, estimate: Estimate, knots: range, t0_ns: int) -> None:
         """The estimate's knots `knots` (indices into it); t0_ns: the time origin (the
@@ -300,7 +305,7 @@ class LiveRecording:
             )
         offsets = part.t_ns - np.int64(self.t0_ns)
         _log_body_poses(self.rec, self.model, part.qpos, offsets)
-        _log_contacts(self.rec, self.model, part, offsets)
+        _log_contacts(self.rec, self.model, part, offsets, self.bodies)
         _log_series_group(self.rec, "plots/uncertainty", self.dofs, part.qpos_std, offsets)
 
     def log_events(self, events: Sequence[Event]) -> None:
@@ -453,9 +458,24 @@ def contact_forces_world(estimate: Estimate, k: int) -> tuple[np.ndarray, np.nda
 def _log_all(
     rec: rr.RecordingStream, estimate: Estimate, model: mujoco.MjModel, log: Log | None
 ) -> None:
+    """The whole estimate, RECORDING_PART_KNOTS knots (and the log's samples from the part's
+    first knot to the next part's) at a time, each part flushed to the sinks."""
     t0_ns = _start_ns(estimate, log)
     _log_static(rec, model, t0_ns)
-    _log_knots(rec, estimate, model, log, t0_ns)
+    starts = range(0, max(estimate.T, 1), RECORDING_PART_KNOTS)
+    bodies = _contact_bodies(model, estimate)  # (each part plots them all, as the whole would)
+    for start in starts:
+        stop = min(start + RECORDING_PART_KNOTS, estimate.T)
+        part_log = log
+        if log is not None and len(starts) > 1:  # its samples in [t_start, t_stop)
+            t_start = int(estimate.t_ns[start]) if start else np.iinfo(np.int64).min
+            t_stop = int(estimate.t_ns[stop]) if stop < estimate.T else np.iinfo(np.int64).max
+            part_log = replace(
+                log,
+                measurements={s: m.between(t_start, t_stop) for s, m in log.measurements.items()},
+            )
+        _log_knots(rec, estimate.at(slice(start, stop)), model, part_log, t0_ns, bodies)
+        rec.flush(timeout_sec=LIVE_FLUSH_TIMEOUT_S)
 
 
 def _log_static(rec: rr.RecordingStream, model: mujoco.MjModel, t0_ns: int) -> None:
@@ -471,11 +491,13 @@ def _log_knots(
     model: mujoco.MjModel,
     log: Log | None,
     t0_ns: int,
+    bodies: set[int],
 ) -> None:
-    """The estimate's knots (and the log's mocap over them) on the timeline from t0_ns."""
+    """The estimate's knots (and the log's mocap over them) on the timeline from t0_ns;
+    bodies: of the contact force plots (`_log_contacts`)."""
     knots = estimate.t_ns - np.int64(t0_ns)  # (T,) int64 ns since the start
     _log_body_poses(rec, model, estimate.qpos, knots)
-    _log_contacts(rec, model, estimate, knots)
+    _log_contacts(rec, model, estimate, knots, bodies)
     if log is not None:
         _log_measurements(rec, log, t0_ns)
     dofs = dof_names(model)
@@ -500,6 +522,7 @@ class RecordingWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.rec = rr.RecordingStream("physfuse", recording_id=recording_id)
         self.started = False
+        self.bodies: set[int] = set()  # in contact in a part so far (`_log_contacts`)
 
     def write(self, estimate: Estimate, log: Log | None = None) -> None:
         if not self.started:  # the layout from the first part (its residuals and streams)
@@ -507,7 +530,7 @@ class RecordingWriter:
             self.rec.set_sinks(rr.FileSink(str(self.path)), default_blueprint=blueprint)
             _log_static(self.rec, self.model, self.t0_ns)
             self.started = True
-        _log_knots(self.rec, estimate, self.model, log, self.t0_ns)
+        _log_knots(self.rec, estimate, self.model, log, self.t0_ns, self.bodies)
         self.rec.flush()  # to the file: memory holds one part, not the recording
 
     def close(self) -> None:
@@ -665,23 +688,29 @@ def _log_body_poses(
 
 
 def _log_contacts(
-    rec: rr.RecordingStream, model: mujoco.MjModel, estimate: Estimate, knots: np.ndarray
+    rec: rr.RecordingStream,
+    model: mujoco.MjModel,
+    estimate: Estimate,
+    knots: np.ndarray,
+    bodies: set[int],
 ) -> None:
-    """Contact arrows and points per knot, and the net normal force on each body."""
+    """Contact arrows and points per knot, and the net normal force on each body in contact
+    and each of `bodies` (zero out of contact), which those in contact join: a recording
+    written in parts plots a body at every knot from its first contact on, not across a gap."""
     scale = FORCE_SCALE_M_PER_WEIGHT / max(model_weight(model), 1e-9)
     counts = np.zeros(estimate.T, dtype=np.int64)
     origins, vectors, colors, labels = [], [], [], []
-    normal_force: dict[int, np.ndarray] = {}
+    normal_force = {b: np.zeros(estimate.T) for b in bodies}
     for k, c in enumerate(estimate.constraints):
         pos, force = contact_forces_world(estimate, k)
         counts[k] = len(pos)
         for i in range(len(pos)):
             branch = c.contact_branch(i)
-            bodies = [int(model.geom_bodyid[g]) for g in c.contacts.geom[i]]
+            pair = [int(model.geom_bodyid[g]) for g in c.contacts.geom[i]]
             f_n = float(c.contact_impulse(i)[0] / c.h)  # normal component, N
-            for b in set(bodies) - {0}:
+            for b in set(pair) - {0}:
                 normal_force.setdefault(b, np.zeros(estimate.T))[k] += f_n
-            names = "–".join(_body_name(model, b) for b in bodies if b != 0) or "world"
+            names = "–".join(_body_name(model, b) for b in pair if b != 0) or "world"
             origins.append(pos[i])
             vectors.append(force[i] * scale)
             colors.append(BRANCH_COLORS[branch])
@@ -705,6 +734,7 @@ def _log_contacts(
     )
     rec.log("world/contacts", rr.Arrows3D.from_fields(radii=0.008), static=True)
     rec.log("world/contacts/points", rr.Points3D.from_fields(radii=0.015), static=True)
+    bodies.update(normal_force)
     for b in sorted(normal_force):
         _log_series(
             rec,
@@ -713,6 +743,12 @@ def _log_contacts(
             normal_force[b],
             knots,
         )
+
+
+def _contact_bodies(model: mujoco.MjModel, estimate: Estimate) -> set[int]:
+    """The bodies (not the world) in contact at some knot of the estimate."""
+    geoms = [np.reshape(c.contacts.geom, -1) for c in estimate.constraints]
+    return {int(b) for b in model.geom_bodyid[np.concatenate([*geoms, []]).astype(int)]} - {0}
 
 
 def _log_measurements(rec: rr.RecordingStream, log: Log, t0_ns: int) -> None:

@@ -9,7 +9,7 @@ JointState, an IMU without orientation), and `mask` is its complement.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -94,6 +94,16 @@ class Measurement:
     def mask(self) -> np.ndarray:
         """(N, E, K) bool: the field was in the message (values finite)."""
         return np.isfinite(self.values)
+
+    def between(self, t0_ns: int, t1_ns: int) -> Measurement:
+        """The samples with t0 ≤ t < t1 (ns, int: float would round a log's clock)."""
+        i0, i1 = np.searchsorted(self.t_ns, np.array([t0_ns, t1_ns], dtype=np.int64))
+        return replace(
+            self,
+            t_ns=self.t_ns[i0:i1],
+            log_time_ns=self.log_time_ns[i0:i1],
+            values=self.values[i0:i1],
+        )
 
     def element(self, name: str) -> np.ndarray:
         """(N, K) values of one model element."""
