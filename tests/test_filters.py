@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from estimator.baselines.filters import TangentChart, filter_estimate
+from estimator.cli import main
 from estimator.config import Config, load_config
 from estimator.errors import ConfigError
 from estimator.io.logs import read_log
@@ -119,3 +120,23 @@ def test_unknown_method_is_one_clear_error():
     config, measurements = _slice("single_joint", 0.1)
     with pytest.raises(ConfigError, match=r"'kf'.*ekf, ukf"):
         filter_estimate(config, measurements, Settings(), "kf")
+
+
+def test_a_position_servo_is_not_applied_twice(tmp_path):
+    """The filters step with the commands' force as u: the model's own actuation is off there.
+    Menagerie's Panda drives its arm with position servos (force kp (ctrl − q) − kv q̇), whose
+    bias −kp q − kv q̇ would otherwise pull every joint towards zero on top of u (the EKF's
+    joints were 1.9° off, 400× the encoders)."""
+    log, config_path = tmp_path / "panda.mcap", tmp_path / "panda.toml"
+    panda = ROOT / "physics" / "models" / "menagerie" / "panda_box.xml"
+    markers = [f"box_marker{i}" for i in range(4)]
+    argv = ["simulate", "--model", str(panda), "--excitation", "0.2", "--markers", *markers]
+    main([*argv, "--duration", "1", "--out", str(log), "--config-out", str(config_path), "--quiet"])
+    config = load_config(config_path)
+    measurements = read_log(log, config).measurements
+    est, _ = filter_estimate(config, measurements, Settings.from_config(config), "ekf")
+    model = config.load_model()
+    truth = at_times(*read_ground_truth(log, model), est.t_ns)
+    raw = trajectory_errors(model, initial_trajectory(model, measurements, est.t_ns), truth)
+    filtered = trajectory_errors(model, est.qpos, truth)
+    assert filtered["joint_deg"] < 1.25 * raw["joint_deg"], (filtered, raw)

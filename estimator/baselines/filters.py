@@ -29,6 +29,7 @@ that knot (mocap outliers), unless its stream has been rejected for more than GA
 
 from __future__ import annotations
 
+import copy
 import functools
 import time
 from collections.abc import Callable, Mapping
@@ -158,7 +159,10 @@ class _Physics:
     """The Euler step, the sensors and their derivatives on the problem's model (owns MjData)."""
 
     def __init__(self, problem: Problem) -> None:
-        self.model = problem.model
+        # the commands' force comes in as u (qfrc_applied): the model's own actuation off, or a
+        # position servo's bias (−kp q − kv v at ctrl 0) would be applied on top of it
+        self.model = copy.deepcopy(problem.model)
+        self.model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_ACTUATION
         self.data = mujoco.MjData(self.model)
         self.h = problem.h
         self.fd_eps = problem.settings.fd_eps
@@ -167,7 +171,6 @@ class _Physics:
     def _set(self, q: np.ndarray, v: np.ndarray, u: np.ndarray) -> None:
         d = self.data
         d.qpos[:], d.qvel[:], d.qfrc_applied[:] = q, v, u
-        d.ctrl[:] = 0.0  # the commands' force is already in u
         d.qacc_warmstart[:] = self.warmstart
 
     def step(
