@@ -155,6 +155,8 @@ PUBLIC_ROBOTS: Mapping[str, tuple[str, ...]] = {
     "h1": ("--model", "physics/models/menagerie/h1.xml", "--pushes", "pelvis"),
     "panda_box": ("--model", "physics/models/menagerie/panda_box.xml", "--excitation", "0.2",
                   "--markers", "box_marker0", "box_marker1", "box_marker2", "box_marker3"),
+    "anymal_c": ("--model", "physics/models/menagerie/anymal_c.xml", "--excitation", "0.1",
+                 "--pushes", "base"),
 }  # fmt: skip
 CALIBRATED_SETTING = "softness_eps"  # fitted per robot before the runs (--no-calibration)
 EXACT_MODEL = "-exact-model"  # in the names of --no-mismatch logs and runs

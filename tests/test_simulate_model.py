@@ -1,7 +1,8 @@
 """`physfuse simulate --model MODEL.xml`: any MJCF model with a keyframe, simulated holding it.
 
 The converted Menagerie robots (Go2: motors, impratio 100; H1: a motor-driven humanoid;
-Panda: position servos and a free box with markers) and one bundled model are simulated
+Panda: position servos and a free box with markers; ANYmal C: position servos with force
+limits, joint friction loss, cylinders, a base turned about z) and one bundled model are simulated
 briefly once per module; the tests check the log, the controller's commands, that the robots
 stay up, that the mismatch scales the model's own contact softness, the config, and the
 command line's errors.
@@ -26,11 +27,14 @@ from estimator.simulate import Ros2Writer, SimulationResult, simulate
 from estimator.simulate.mismatch import Mismatch
 from estimator.simulate.model_scenario import model_scenario
 from physics.model import load_model
+from physics.native import NativeDynamics
 from physics.softness import Softness
 
 ROOT = Path(__file__).resolve().parents[1]
 MENAGERIE = ROOT / "physics" / "models" / "menagerie"
-GO2, H1, PANDA = (MENAGERIE / f"{name}.xml" for name in ("go2", "h1", "panda_box"))
+GO2, H1, PANDA, ANYMAL = (
+    MENAGERIE / f"{name}.xml" for name in ("go2", "h1", "panda_box", "anymal_c")
+)
 HUMANOID = ROOT / "physics" / "models" / "humanoid.xml"
 BOX_MARKERS = [f"box_marker{i}" for i in range(4)]
 
@@ -48,6 +52,7 @@ def runs(tmp_path_factory) -> dict[str, Run]:
         "go2": (GO2, {"excitation_rad": 0.1}, 1.0),
         "h1": (H1, {"pushes": "pelvis"}, 2.0),
         "panda_box": (PANDA, {"markers": BOX_MARKERS, "excitation_rad": 0.2}, 1.0),
+        "anymal_c": (ANYMAL, {"excitation_rad": 0.1, "pushes": "base"}, 1.5),
         "humanoid": (HUMANOID, {}, 1.0),
     }
     out = {}
@@ -69,6 +74,7 @@ def _qadr(model: mujoco.MjModel, actuators: range) -> np.ndarray:
         ("go2", {"/mocap/base/pose", "/imu", "/joint_states", "/joint_commands"}),
         ("h1", {"/mocap/pelvis/pose", "/imu", "/joint_states", "/joint_commands"}),
         ("panda_box", {"/mocap/box/pose", "/mocap/markers", "/joint_states", "/joint_commands"}),
+        ("anymal_c", {"/mocap/base/pose", "/imu", "/joint_states", "/joint_commands"}),
         ("humanoid", {"/mocap/torso/pose", "/imu", "/joint_states", "/joint_commands"}),
     ],
 )
@@ -76,16 +82,16 @@ def test_log_has_the_sensor_topics_ground_truth_and_metadata(runs, name, sensors
     run = runs[name]
     truth = {t for t in run.result.topics if t.startswith("/ground_truth/")}
     assert set(run.result.topics) == sensors | truth
-    free = {"go2": "base", "h1": "pelvis", "panda_box": "box", "humanoid": "torso"}[name]
+    free = {"h1": "pelvis", "panda_box": "box", "humanoid": "torso"}.get(name, "base")
     assert {f"/ground_truth/odometry/{free}", "/ground_truth/joint_states"} <= truth
     assert "/ground_truth/contacts" in truth
     assert ("/ground_truth/imu_bias/imu" in truth) == ("/imu" in sensors)
     states = read_state_topics(run.log)
     assert states.joints is not None and len(states.joints.t_ns) == run.result.trajectory.steps
     simulation = read_metadata(run.log)["physfuse.simulation"]
-    model = {"go2": GO2, "h1": H1, "panda_box": PANDA, "humanoid": HUMANOID}[name]
+    model = {"go2": GO2, "h1": H1, "panda_box": PANDA, "anymal_c": ANYMAL}.get(name, HUMANOID)
     assert simulation["model"] == str(model) and simulation["seed"] == "0"
-    assert simulation["keyframe"] == "home"
+    assert simulation["keyframe"] == ("standing" if name == "anymal_c" else "home")  # upstream's
 
 
 def test_ground_truth_imu_bias_is_named_by_its_site_as_the_estimates(runs, tmp_path):
@@ -129,14 +135,34 @@ def test_motors_get_torques(runs, name):
 
 @pytest.mark.parametrize(
     ("name", "low", "high"),
-    [("go2", 0.22, 0.30), ("h1", 0.95, 1.0), ("humanoid", 1.2, 1.35)],
+    [("go2", 0.22, 0.30), ("h1", 0.95, 1.0), ("anymal_c", 0.45, 0.57), ("humanoid", 1.2, 1.35)],
 )
 def test_floating_robots_stay_up(runs, name, low, high):
     run = runs[name]
     z = run.result.trajectory.qpos[:, 2]  # the base's free joint comes first
     assert low < z.min() and z.max() < high
-    if name == "h1":  # pushed and excited, and still up
+    if name in ("h1", "anymal_c"):  # pushed and excited, and still up
         assert run.result.pushes and run.result.pushes[0].start_s == 1.0
+
+
+@pytest.mark.parametrize("name", ["go2", "h1", "panda_box", "anymal_c"])
+def test_the_inverse_at_a_simulated_trajectory_returns_its_actuator_forces(runs, name):
+    """mj_inverse (the estimator's engine call) at the simulated states of each public robot,
+    with the simulated (true) model, gives back the actuators' force of each step (pushes
+    aside): contacts of condim 6 with their own solimp, elliptic cones at impratio 100, joint
+    friction loss and damping are the forward step's, to rounding."""
+    traj = runs[name].result.trajectory
+    dynamics = NativeDynamics(traj.model)
+    pushed = np.zeros(len(traj.qvel), bool)
+    for push in runs[name].result.pushes:
+        steps = np.arange(len(traj.qvel)) * traj.h
+        pushed |= (steps >= push.start_s - traj.h) & (steps <= push.start_s + push.duration_s)
+    steps = [k for k in range(0, len(traj.qvel) - 1, 9) if not pushed[k]]
+    for k in steps:
+        qacc = (traj.qvel[k + 1] - traj.qvel[k]) / traj.h
+        u = dynamics.inverse(traj.qpos[k], traj.qvel[k], qacc).qfrc_inverse
+        scale = max(np.abs(traj.qfrc_actuator[k]).max(), 1.0)
+        assert np.abs(u - traj.qfrc_actuator[k]).max() / scale < 1e-6, (name, k)
 
 
 def test_panda_holds_its_arm_and_the_box_rests(runs):
