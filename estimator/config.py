@@ -250,6 +250,15 @@ class Config:
     # a free base's start x [m], y [m] and yaw [rad] (`start_pose`): its home keyframe's
     start_pose: tuple[float, float, float] | None = None
 
+    @property
+    def model_ref(self) -> str:
+        """The model as a program without this config finds it (an estimate's metadata): a
+        bundled model's name, or the MJCF file's absolute path (`model` is relative to the
+        config's folder)."""
+        if not self.model.endswith(".xml") and "/" not in self.model:
+            return self.model
+        return str(self.model_path.resolve())
+
     def load_model(self) -> mujoco.MjModel:
         """The MuJoCo model the config maps onto, with the sites of its mounts and its home
         keyframe at the start pose."""

@@ -723,7 +723,7 @@ def collect_estimate(
         qfrc_known=qfrc_known,
         qpos_std=std,
         constraints=tuple(constraints),
-        model_name=config.model,
+        model_name=config.model_ref,
         imu_bias=imu_bias,
         model_error=model_error,
         residuals=rows,

@@ -212,7 +212,7 @@ def test_no_mismatch_simulates_the_model_itself():
 
 
 # -- the command line ----------------------------------------------------------------------------
-def test_cli_writes_a_log_and_a_config_that_inspect_reads(tmp_path, capsys):
+def test_cli_writes_a_log_and_a_config_that_inspect_reads(tmp_path, capsys, monkeypatch):
     (tmp_path / "configs").mkdir()
     log, config = tmp_path / "panda.mcap", tmp_path / "configs" / "panda.toml"
     argv = ["simulate", "--model", str(PANDA), "--markers", *BOX_MARKERS, "--duration", "0.2"]
@@ -230,6 +230,14 @@ def test_cli_writes_a_log_and_a_config_that_inspect_reads(tmp_path, capsys):
         "command",
     }
     assert main(["inspect", str(log), "--config", str(config)]) == 0
+    # the estimate names its model so that it loads without the config, from anywhere
+    out_dir = tmp_path / "estimate"
+    argv = ["estimate", str(log), "--config", str(config), "--out", str(out_dir), "--method", "raw"]
+    assert main([*argv, "--quiet"]) == 0
+    monkeypatch.chdir(tmp_path / "configs")
+    named = read_metadata(out_dir / "estimate.mcap")["physfuse.estimate"]["model"]
+    assert Path(named) == PANDA.resolve()
+    assert load_model(named).nq == load_model(PANDA).nq
     capsys.readouterr()
 
 

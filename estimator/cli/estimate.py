@@ -230,7 +230,7 @@ def _estimate_in_chunks(
     shown: list[Estimate] = []
     command_lines: list[str] = []
     with (
-        EstimateWriter(tmp / "estimate.mcap", model, config.model, h, run_id) as out_mcap,
+        EstimateWriter(tmp / "estimate.mcap", model, config.model_ref, h, run_id) as out_mcap,
         RecordingWriter(tmp / "estimate.rrd", model, 0, run_id) as rrd,
         _progress_bar(args.quiet) as progress,
     ):

@@ -212,7 +212,10 @@ def _listed(names: list[str], most: int = 6) -> str:
 
 
 def _model_of(*paths: Path) -> mujoco.MjModel:
-    """The model named in an estimate's (`physfuse.estimate`) or a simulated log's metadata."""
+    """The model named in an estimate's (`physfuse.estimate`) or a simulated log's metadata:
+    the first that loads (an older estimate names its model as its config did, relative to
+    the config's folder)."""
+    failed = []
     for path in paths:
         meta = read_metadata(path)
         for record in ("physfuse.estimate", "physfuse.simulation"):
@@ -221,10 +224,9 @@ def _model_of(*paths: Path) -> mujoco.MjModel:
                 try:
                     return load_model(name)
                 except PhysicsError as err:
-                    raise PhysfuseError(
-                        f"{path}: metadata names model {name!r}, which does not load ({err}); "
-                        "pass --config"
-                    ) from err
+                    failed.append(f"{path} names model {name!r}, which does not load ({err})")
+    if failed:
+        raise PhysfuseError(f"{'; '.join(failed)}; pass --config")
     raise PhysfuseError(f"{paths[0]}: no metadata names the model; pass --config CONFIG")
 
 

@@ -183,26 +183,30 @@ def run(args: argparse.Namespace) -> int:
     sinks = []  # (live ones first: one that cannot start leaves no file behind)
     if args.publish == "-":
         sinks.append(
-            EstimateWriter(sys.stdout.buffer, model, config.model, stream.h, run_id, chunked=False)
+            EstimateWriter(
+                sys.stdout.buffer, model, config.model_ref, stream.h, run_id, chunked=False
+            )
         )
     elif args.publish is not None:
         server = McapStreamServer(args.publish)
-        sinks.append(EstimateWriter(server, model, config.model, stream.h, run_id))
+        sinks.append(EstimateWriter(server, model, config.model_ref, stream.h, run_id))
         host = args.publish.rsplit(":", 1)[0]
         print(f"physfuse stream: publishing the estimate on {host}:{server.port}", file=sys.stderr)
     if args.bridge_publish is not None:
         from estimator.io.foxglove import BridgePublisher
 
         bridge = BridgePublisher(args.bridge_publish)
-        sinks.append(EstimateWriter(bridge, model, config.model, stream.h, run_id))
+        sinks.append(EstimateWriter(bridge, model, config.model_ref, stream.h, run_id))
     if args.foxglove is not None:
         from estimator.io.foxglove import FoxgloveSink  # (foxglove-sdk only when asked for)
 
         live = FoxgloveSink(args.foxglove)
-        sinks.append(EstimateWriter(live, model, config.model, stream.h, run_id))
+        sinks.append(EstimateWriter(live, model, config.model_ref, stream.h, run_id))
         print(f"physfuse stream: serving the estimate on ws://0.0.0.0:{live.port}", file=sys.stderr)
     if args.out is not None:
-        sinks.append(EstimateWriter(args.out, model, config.model, stream.h, run_id, chunked=False))
+        sinks.append(
+            EstimateWriter(args.out, model, config.model_ref, stream.h, run_id, chunked=False)
+        )
     status = Status(args.quiet)
     reader = DecodingReader(args.config, args.source, args.reconnect)
     previous = signal.signal(signal.SIGTERM, _interrupt)

@@ -425,7 +425,8 @@ def build_blueprint(
         rrb.Horizontal(
             rrb.Spatial3DView(
                 origin="world",
-                name=f"{estimate.model_name} (contact arrows: {FORCE_SCALE_M_PER_WEIGHT:g} m = "
+                name=f"{Path(estimate.model_name).stem} (contact arrows: "
+                f"{FORCE_SCALE_M_PER_WEIGHT:g} m = "
                 f"body weight, {weight:.0f} N)",
                 eye_controls=_eye(model, estimate.qpos[0]) if estimate.T else None,
             ),
