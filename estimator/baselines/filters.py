@@ -7,8 +7,11 @@ the IMU biases (6 per IMU stream, the problem's layout). The filters work in tan
 coordinates x = (δq, v, b) around a reference configuration q̄, q = q̄ ⊕ δq (TangentChart);
 after each update δq is folded into q̄.
 
+Start: q_0 the raw configuration, σ INITIAL_STD, or a coordinate's motion over the time it is
+held back from its stream's first sample (`held_at_start`); v_0 from the first two.
+
 Process: one semi-implicit Euler step of MuJoCo's forward dynamics (mj_step on the problem's
-model, softness and timestep h) under the known generalized force u_k:
+model, softness and timestep h, its actuation off) under the known generalized force u_k:
 
     a_k = forward(q_k, v_k, u_k),   v_{k+1} = v_k + h a_k,   q_{k+1} = q_k ⊕ h v_{k+1}
 
@@ -365,7 +368,9 @@ def _unscented_transform(
 class _Filter:
     """One pass over the knots: predict with the physics step, update with the knot's sensors."""
 
-    def __init__(self, problem: Problem, qpos0: np.ndarray, method: str) -> None:
+    def __init__(
+        self, problem: Problem, qpos0: np.ndarray, method: str, held_s: np.ndarray | None = None
+    ) -> None:
         self.p = problem
         self.method = method
         self.physics = _Physics(problem)
@@ -383,7 +388,13 @@ class _Filter:
         self.ekf.x = np.zeros(self.n)
         if len(qpos0) > 1:  # v_0 from the first two raw configurations
             self.ekf.x[nv : 2 * nv] = self.chart.coordinates(qpos0[0], qpos0[1]) / problem.h
-        self.ekf.P = np.diag(np.r_[np.full(2 * nv, INITIAL_STD**2), bias_std**2])
+        # q_0's prior: INITIAL_STD, but a coordinate held from a measurement t later (a stream
+        # that starts after the log) is off by its motion over t, INITIAL_STD (as a speed) · t
+        q_std = np.full(nv, INITIAL_STD)
+        if held_s is not None:
+            held = (held_s > 0) & np.isfinite(held_s)
+            q_std[held] = np.minimum(INITIAL_STD, INITIAL_STD * held_s[held])
+        self.ekf.P = np.diag(np.r_[q_std**2, np.full(nv, INITIAL_STD**2), bias_std**2])
         self.ukf: UnscentedKalmanFilter | None = None
         if method == "ukf":
             points = MerweScaledSigmaPoints(
@@ -583,6 +594,29 @@ class _Filter:
         P[v, v] = np.diag(var_v)
 
 
+def held_at_start(model: mujoco.MjModel, measured: np.ndarray, h: float) -> np.ndarray:
+    """(nv,) how long each dof's coordinate at the first knot is held back from a later
+    measurement, s (`initial_trajectory` holds a stream's first sample at the log's start):
+    0 where it is measured there, inf where it never is. ANYmal C's first mocap frame comes
+    11 ms into its log; under the 1 m prior the first update (joints and IMU) put its base 13
+    cm high until then."""
+    first = np.where(measured.any(axis=0), measured.argmax(axis=0), -1)  # (nq,) first knot
+    out = np.full(model.nv, np.inf)
+    for j in range(model.njnt):
+        q, d = int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j])
+        kind = model.jnt_type[j]
+        if kind == mujoco.mjtJoint.mjJNT_FREE:  # position, then orientation
+            groups = [(q, q + 3, d, d + 3), (q + 3, q + 7, d + 3, d + 6)]
+        elif kind == mujoco.mjtJoint.mjJNT_BALL:
+            groups = [(q, q + 4, d, d + 3)]
+        else:
+            groups = [(q, q + 1, d, d + 1)]
+        for qa, qb, da, db in groups:
+            knots = first[qa:qb]
+            out[da:db] = np.inf if (knots < 0).any() else float(knots.max()) * h
+    return out
+
+
 def _force_variance(problem: Problem) -> np.ndarray:
     """(T, nv) σ_f² of the force on each dof: the physics σ of the settings; where no force
     is known, the largest force its actuators can apply (Σ_a |moment| · max|force_a|, from the
@@ -631,8 +665,9 @@ def filter_estimate(
     problem = build_problem(
         config, measurements, settings, knot_grid(measurements, h), compiled, at_sample_times=False
     )
-    qpos0 = initial_trajectory(problem.model, measurements, problem.t_ns)
-    run = _Filter(problem, qpos0, method)
+    measured = np.zeros((problem.T, problem.model.nq), dtype=bool)
+    qpos0 = initial_trajectory(problem.model, measurements, problem.t_ns, measured_out=measured)
+    run = _Filter(problem, qpos0, method, held_at_start(problem.model, measured, problem.h))
     qpos, bias, std = run.run(progress)
     finite = bool(np.all(np.isfinite(qpos)))
     warnings = [
