@@ -24,6 +24,7 @@ from estimator.evaluate import compare_states
 from estimator.io.mcap_writer import imu_bias_message
 from estimator.io.state_topics import read_metadata, read_state_topics
 from estimator.simulate import Ros2Writer, SimulationResult, simulate
+from estimator.simulate.controllers import short_of_holding
 from estimator.simulate.mismatch import Mismatch
 from estimator.simulate.model_scenario import model_scenario
 from physics.model import load_model
@@ -250,6 +251,36 @@ def _model_file(tmp_path: Path, actuator: str, option: str = "", key: bool = Tru
         {'<keyframe><key name="home"/></keyframe>' if key else ""}</mujoco>"""
     )
     return path
+
+
+def test_cli_warns_when_the_actuators_cannot_hold_the_keyframe_and_the_robot_falls(
+    tmp_path, capsys
+):
+    """A pole standing on the floor, tilted 5°, a weak position servo at its top holding 1 kg
+    0.1 m out (kp 1, targets within ±0.1 rad: at most 0.1 N m of the 0.98 N m it takes): both
+    are one line each, and the log is written (it records the fall)."""
+    model = tmp_path / "pole.xml"
+    model.write_text(
+        """<mujoco><option cone="elliptic"/><worldbody><geom type="plane" size="0 0 1"/>
+        <body name="pole" pos="0 0 0.5"><freejoint name="pole_root"/>
+        <geom type="capsule" size="0.05" fromto="0 0 -0.45 0 0 0.45" mass="1"/>
+        <body name="tip" pos="0 0 0.45"><joint name="wrist" axis="0 1 0"/>
+        <geom size="0.05" pos="0.1 0 0" mass="1"/></body></body></worldbody>
+        <actuator><position name="wrist" joint="wrist" kp="1" ctrlrange="-0.1 0.1"/></actuator>
+        <keyframe><key name="home" qpos="0 0 0.5 0.9990482 0 0.0436194 0 0"/></keyframe>
+        </mujoco>"""
+    )
+    log = tmp_path / "pole.mcap"
+    assert main(["simulate", "--model", str(model), "--duration", "2", "--out", str(log)]) == 0
+    _, err = capsys.readouterr()
+    lines = err.strip().splitlines()
+    assert len(lines) == 2, err
+    assert "keyframe 'home' takes more than the model's actuators give" in lines[0]
+    assert "wrist needs -0.977" in lines[0] and "(can give -0.1 … 0.1)" in lines[0]
+    assert "the robot fell" in lines[1] and log.is_file()
+    stout = tmp_path / "stout.xml"  # the same servo, strong enough: no warning about it
+    stout.write_text(model.read_text().replace('kp="1" ctrlrange="-0.1 0.1"', 'kp="100"'))
+    assert short_of_holding(load_model(stout), 0) == []
 
 
 @pytest.mark.parametrize(

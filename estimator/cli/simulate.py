@@ -24,9 +24,11 @@ import mujoco
 from estimator.io.outputs import OutputFile
 from estimator.simulate import SCENARIOS, SimulationError, scenario_config, simulate
 from estimator.simulate.conditions import CONDITIONS, with_condition
+from estimator.simulate.controllers import short_of_holding
+from estimator.simulate.disturbances import FALLEN, fall_time
 from estimator.simulate.model_scenario import EXCITATION_RAD, model_scenario
 from estimator.simulate.scenarios import Scenario, get_scenario
-from estimator.simulate.sensors import FootContacts
+from estimator.simulate.sensors import FootContacts, Trajectory
 from physics.model import load_model
 
 # the options of --model, by argparse dest
@@ -154,7 +156,35 @@ def run(args: argparse.Namespace) -> int:
         )
         if args.config_out is not None:
             print(f"{args.config_out}: config for its sensor topics")
+    if args.model is not None:
+        for warning in _hold_warnings(scenario, result.trajectory):
+            print(f"physfuse simulate: warning: {warning}", file=sys.stderr)
     return 0
+
+
+def _hold_warnings(scenario: Scenario, trajectory: Trajectory) -> list[str]:
+    """What a user of --model should know about the keyframe hold: actuators that cannot give
+    the force that holds it (`short_of_holding`), and a fall (the free body below `FALLEN` of
+    its starting height): the log records it."""
+    model = load_model(scenario.model)
+    key = scenario.keyframe
+    if isinstance(key, str):
+        key = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, key)
+    out = []
+    short = short_of_holding(model, key)
+    if short:
+        out.append(
+            f"keyframe {scenario.keyframe!r} takes more than the model's actuators give "
+            f"(actuator force, N or N m): {', '.join(short)}"
+        )
+    fell = fall_time(trajectory)
+    if fell is not None:
+        out.append(
+            f"the robot fell {fell:.2f} s in (its free body below {FALLEN:.0%} of its starting "
+            f"height): the model's own actuators did not hold keyframe {scenario.keyframe!r}; "
+            "the log records the fall"
+        )
+    return out
 
 
 def _scenario(args: argparse.Namespace) -> Scenario:

@@ -429,13 +429,13 @@ def actuator_kinds(model: mujoco.MjModel) -> list[str]:
     return kinds
 
 
-def holding_forces(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
+def holding_forces(model: mujoco.MjModel, data: mujoco.MjData, clip: bool = True) -> np.ndarray:
     """(nu,) actuator forces that hold the state in `data` still, with its contacts.
 
     τ = qfrc_inverse + qfrc_constraint of mj_inverse at zero velocity and acceleration (gravity
     less passive forces), split by least squares over actuator forces F and the contact and
     equality constraint forces λ: τ = Mᵀ F + Jᵀ λ, λ weighted like `static_feedforward`.
-    M: (nu, nv) actuator moments. Clipped to each actuator's force range.
+    M: (nu, nv) actuator moments. Clipped to each actuator's force range (clip).
     """
     data.qvel[:] = 0.0
     data.qacc[:] = 0.0
@@ -447,9 +447,47 @@ def holding_forces(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
     scale = 100.0  # N of constraint force per N (N·m) of actuator force in the norm
     solution = np.linalg.lstsq(np.hstack([moment.T, scale * jac.T]), tau, rcond=None)[0]
     force = solution[: model.nu]
+    if not clip:
+        return force
     limited = model.actuator_forcelimited.astype(bool)
     lo, hi = model.actuator_forcerange.T
     return np.where(limited, np.clip(force, lo, hi), force)
+
+
+def short_of_holding(model: mujoco.MjModel, keyframe: int) -> list[str]:
+    """The actuators that cannot hold `keyframe` still, each as "name needs F (can give
+    lo … hi)": the force that would (`holding_forces`) outside what their forcerange, their
+    joint's actuatorfrcrange or their ctrlrange at the keyframe allows (a position servo's
+    target past its range: Menagerie's Berkeley Humanoid, kp 1 N m/rad on its knees)."""
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, keyframe)
+    force = holding_forces(model, data, clip=False)  # (leaves the keyframe's lengths in data)
+    out = []
+    for a in range(model.nu):
+        lo, hi = -np.inf, np.inf
+        if model.actuator_forcelimited[a]:
+            lo, hi = (
+                max(lo, model.actuator_forcerange[a, 0]),
+                min(hi, model.actuator_forcerange[a, 1]),
+            )
+        if model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT:
+            j = model.actuator_trnid[a, 0]
+            gear = model.actuator_gear[a, 0]
+            if model.jnt_actfrclimited[j] and gear:
+                ends = np.sort(model.jnt_actfrcrange[j] / gear)
+                lo, hi = max(lo, ends[0]), min(hi, ends[1])
+        fixed = model.actuator_gaintype[a] == mujoco.mjtGain.mjGAIN_FIXED
+        if model.actuator_ctrllimited[a] and fixed:  # F = g·ctrl + b₀ + b₁·L at rest
+            bias = (
+                model.actuator_biasprm[a, 0]
+                + model.actuator_biasprm[a, 1] * data.actuator_length[a]
+            )
+            ends = np.sort(model.actuator_gainprm[a, 0] * model.actuator_ctrlrange[a] + bias)
+            lo, hi = max(lo, ends[0]), min(hi, ends[1])
+        if not lo - 1e-9 <= force[a] <= hi + 1e-9:
+            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a) or f"#{a}"
+            out.append(f"{name} needs {force[a]:.3g} (can give {lo:.3g} … {hi:.3g})")
+    return out
 
 
 class KeyframeHold:
