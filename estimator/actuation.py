@@ -13,7 +13,8 @@ supported. Per actuator i, with length l_i = moment_i·q (locally) and velocity 
     ∂qfrc/∂v = Σ_i moment_iᵀ (g2 ctrl_i + b2) moment_i
 
 (0 for an actuator clamped at its forcerange; the change of the moment arm with q, zero for
-joint transmissions, is left out.)
+joint transmissions, is left out.) A joint with an actuatorfrcrange clamps the sum on its dof,
+as MuJoCo clamps qfrc_actuator (a clamped dof's derivatives are 0).
 """
 
 from __future__ import annotations
@@ -119,6 +120,9 @@ def commanded_forces(
     given = np.isfinite(ctrl)
     f = np.where(given, force, 0.0)
     qfrc = np.einsum("kun,ku->kn", moment, f)
+    dofs, low, high = _joint_force_ranges(model)
+    clamped = (qfrc[:, dofs] < low) | (qfrc[:, dofs] > high)  # (K, limited dofs)
+    qfrc[:, dofs] = np.clip(qfrc[:, dofs], low, high)
     if not jacobians:
         return qfrc, None, None
     c = np.where(given, ctrl, 0.0)  # as MuJoCo clamps it to ctrlrange
@@ -136,7 +140,11 @@ def commanded_forces(
     free = given & ~_at_forcerange(model, force)
     df_dl, df_dv = np.where(free, df_dl, 0.0), np.where(free, df_dv, 0.0)
     moment_t = moment.transpose(0, 2, 1)
-    return qfrc, moment_t @ (df_dl[:, :, None] * moment), moment_t @ (df_dv[:, :, None] * moment)
+    dq, dv = moment_t @ (df_dl[:, :, None] * moment), moment_t @ (df_dv[:, :, None] * moment)
+    for i, d in enumerate(dofs):
+        dq[clamped[:, i], d] = 0.0
+        dv[clamped[:, i], d] = 0.0
+    return qfrc, dq, dv
 
 
 def commanded_force(
@@ -150,6 +158,19 @@ def commanded_force(
     moment, force = actuation_at(model, data, ctrl)
     qfrc, dq, dv = commanded_forces(model, ctrl[None], moment[None], force[None], jacobians)
     return qfrc[0], None if dq is None else dq[0], None if dv is None else dv[0]
+
+
+def _joint_force_ranges(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The dofs of the hinge and slide joints with an actuatorfrcrange, and its ends."""
+    scalar = (model.jnt_type == mujoco.mjtJoint.mjJNT_HINGE) | (
+        model.jnt_type == mujoco.mjtJoint.mjJNT_SLIDE
+    )
+    joints = np.flatnonzero(model.jnt_actfrclimited.astype(bool) & scalar)
+    return (
+        model.jnt_dofadr[joints],
+        model.jnt_actfrcrange[joints, 0],
+        model.jnt_actfrcrange[joints, 1],
+    )
 
 
 def _at_forcerange(model: mujoco.MjModel, force: np.ndarray) -> np.ndarray:

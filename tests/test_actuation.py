@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import mujoco
@@ -90,6 +91,29 @@ def test_commanded_force_jacobians_match_numerical_differentiation(variant, seed
     np.testing.assert_allclose(dq, numeric_q, atol=1e-5)
     np.testing.assert_allclose(dv, numeric_v, atol=1e-5)
     assert np.abs(dq).max() > 10.0 and np.abs(dv).max() > 0.5  # the position actuators' kp, kv
+
+
+def test_a_joints_actuator_force_range_clamps_the_commanded_force_as_mujoco_does(variant):
+    """A hinge with actuatorfrcrange (Menagerie's Berkeley Humanoid: ±5 N m on its ankles):
+    MuJoCo clamps the actuators' sum on the joint's dof; so does the commanded force, whose
+    derivatives there are then 0 (against central differences, as above)."""
+    model = copy.deepcopy(variant)
+    knee = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, "front_left_knee")
+    dof = model.jnt_dofadr[knee]
+    model.jnt_actfrclimited[knee] = 1
+    model.jnt_actfrcrange[knee] = (-0.5, 0.5)
+    data = _random_state(model, 0)
+    ctrl = np.random.default_rng(3).uniform(-1.0, 1.0, model.nu)
+    check = mujoco.MjData(model)
+    check.qpos[:], check.qvel[:], check.ctrl[:] = data.qpos, data.qvel, ctrl
+    mujoco.mj_forward(model, check)
+    qfrc, dq, dv = commanded_force(model, data, ctrl, jacobians=True)
+    assert abs(check.qfrc_actuator[dof]) == pytest.approx(0.5)  # clamped, by MuJoCo
+    np.testing.assert_allclose(qfrc, check.qfrc_actuator, atol=1e-12)
+    assert dq is not None and dv is not None
+    assert not dq[dof].any() and not dv[dof].any()
+    unclamped = commanded_force(variant, data, ctrl, jacobians=True)
+    assert np.abs(unclamped[1][dof]).max() > 10.0  # what the clamp holds at 0
 
 
 def test_known_force_follows_the_estimate_not_the_rest_pose(variant, tmp_path):
