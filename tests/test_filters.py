@@ -3,6 +3,7 @@ filter on short slices of the sample recordings against ground truth."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import replace
 from functools import cache
 from pathlib import Path
@@ -122,23 +123,34 @@ def test_unknown_method_is_one_clear_error():
         filter_estimate(config, measurements, Settings(), "kf")
 
 
-def test_a_position_servo_is_not_applied_twice(tmp_path):
-    """The filters step with the commands' force as u: the model's own actuation is off there.
-    Menagerie's Panda drives its arm with position servos (force kp (ctrl − q) − kv q̇), whose
-    bias −kp q − kv q̇ would otherwise pull every joint towards zero on top of u (the EKF's
-    joints were 1.9° off, 400× the encoders)."""
-    log, config_path = tmp_path / "panda.mcap", tmp_path / "panda.toml"
-    panda = ROOT / "physics" / "models" / "menagerie" / "panda_box.xml"
-    markers = [f"box_marker{i}" for i in range(4)]
-    argv = ["simulate", "--model", str(panda), "--excitation", "0.2", "--markers", *markers]
-    main([*argv, "--duration", "1", "--out", str(log), "--config-out", str(config_path), "--quiet"])
+MENAGERIE = ROOT / "physics" / "models" / "menagerie"
+
+
+def _ekf_on_simulated(
+    tmp_path: Path, argv: list[str]
+) -> tuple[dict[str, float], dict[str, float], Mapping[str, Measurement]]:
+    """`physfuse simulate ARGV` for 1 s and the EKF's estimate of it: its errors, the raw
+    measurements' errors and the measurements."""
+    log, config_path = tmp_path / "log.mcap", tmp_path / "log.toml"
+    out = ["--duration", "1", "--out", str(log), "--config-out", str(config_path), "--quiet"]
+    main(["simulate", *argv, *out])
     config = load_config(config_path)
     measurements = read_log(log, config).measurements
     est, _ = filter_estimate(config, measurements, Settings.from_config(config), "ekf")
     model = config.load_model()
     truth = at_times(*read_ground_truth(log, model), est.t_ns)
     raw = trajectory_errors(model, initial_trajectory(model, measurements, est.t_ns), truth)
-    filtered = trajectory_errors(model, est.qpos, truth)
+    return trajectory_errors(model, est.qpos, truth), raw, measurements
+
+
+def test_a_position_servo_is_not_applied_twice(tmp_path):
+    """The filters step with the commands' force as u: the model's own actuation is off there.
+    Menagerie's Panda drives its arm with position servos (force kp (ctrl − q) − kv q̇), whose
+    bias −kp q − kv q̇ would otherwise pull every joint towards zero on top of u (the EKF's
+    joints were 1.9° off, 400× the encoders)."""
+    markers = [f"box_marker{i}" for i in range(4)]
+    argv = ["--model", str(MENAGERIE / "panda_box.xml"), "--excitation", "0.2", "--markers"]
+    filtered, raw, _ = _ekf_on_simulated(tmp_path, [*argv, *markers])
     assert filtered["joint_deg"] < 1.25 * raw["joint_deg"], (filtered, raw)
 
 
@@ -146,16 +158,7 @@ def test_a_pose_held_back_from_mocap_that_starts_late_stays_near_it(tmp_path):
     """ANYmal C's first mocap frame comes a few ms into its log, its base's start held back
     from it: the filter's prior there is the base's motion over those ms, not 1 m, which the
     first updates (encoders and IMU, through the feet's contacts) moved by 13 cm."""
-    log, config_path = tmp_path / "anymal.mcap", tmp_path / "anymal.toml"
-    anymal = ROOT / "physics" / "models" / "menagerie" / "anymal_c.xml"
-    argv = ["simulate", "--model", str(anymal), "--excitation", "0.1", "--condition", "nominal"]
-    main([*argv, "--duration", "1", "--out", str(log), "--config-out", str(config_path), "--quiet"])
-    config = load_config(config_path)
-    measurements = read_log(log, config).measurements
+    argv = ["--model", str(MENAGERIE / "anymal_c.xml"), "--excitation", "0.1"]
+    filtered, raw, measurements = _ekf_on_simulated(tmp_path, [*argv, "--condition", "nominal"])
     assert measurements["mocap_base"].t_ns[0] > min(m.t_ns[0] for m in measurements.values())
-    est, _ = filter_estimate(config, measurements, Settings.from_config(config), "ekf")
-    model = config.load_model()
-    truth = at_times(*read_ground_truth(log, model), est.t_ns)
-    raw = trajectory_errors(model, initial_trajectory(model, measurements, est.t_ns), truth)
-    filtered = trajectory_errors(model, est.qpos, truth)
     assert filtered["base_pos_mm"] < 0.5 * raw["base_pos_mm"], (filtered, raw)
