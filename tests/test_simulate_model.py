@@ -24,7 +24,7 @@ from estimator.evaluate import compare_states
 from estimator.io.mcap_writer import imu_bias_message
 from estimator.io.state_topics import read_metadata, read_state_topics
 from estimator.simulate import Ros2Writer, SimulationResult, simulate
-from estimator.simulate.controllers import short_of_holding
+from estimator.simulate.controllers import short_of_holding, unstable_under_euler
 from estimator.simulate.mismatch import Mismatch
 from estimator.simulate.model_scenario import model_scenario
 from physics.model import load_model
@@ -281,6 +281,21 @@ def test_cli_warns_when_the_actuators_cannot_hold_the_keyframe_and_the_robot_fal
     stout = tmp_path / "stout.xml"  # the same servo, strong enough: no warning about it
     stout.write_text(model.read_text().replace('kp="1" ctrlrange="-0.1 0.1"', 'kp="100"'))
     assert short_of_holding(load_model(stout), 0) == []
+
+
+def test_cli_warns_when_a_servo_is_too_stiff_for_the_euler_step(tmp_path, capsys):
+    """A position servo with kv 10 N m s/rad on a 0.004 kg m² link: h kv/m = 5 at the 2 ms
+    step, where explicit damping is stable below 2 (Menagerie's Spot knees: 5.2); the line
+    names it and the timestep that would do (2 ms · 2/5). With kv 1 nothing is said."""
+    servo = '<position joint="hinge" name="servo" kp="10" kv="{kv}"/>'
+    model = _model_file(tmp_path, servo.format(kv=10))
+    assert unstable_under_euler(load_model(model), 0) == {"servo": pytest.approx(5.0)}
+    log = tmp_path / "servo.mcap"
+    assert main(["simulate", "--model", str(model), "--duration", "0.1", "--out", str(log)]) == 0
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert "cannot integrate the servo feedback of servo" in line
+    assert '<option timestep="0.0008"/>' in line
+    assert unstable_under_euler(load_model(_model_file(tmp_path, servo.format(kv=1))), 0) == {}
 
 
 @pytest.mark.parametrize(

@@ -24,7 +24,7 @@ import mujoco
 from estimator.io.outputs import OutputFile
 from estimator.simulate import SCENARIOS, SimulationError, scenario_config, simulate
 from estimator.simulate.conditions import CONDITIONS, with_condition
-from estimator.simulate.controllers import short_of_holding
+from estimator.simulate.controllers import short_of_holding, unstable_under_euler
 from estimator.simulate.disturbances import FALLEN, fall_time
 from estimator.simulate.model_scenario import EXCITATION_RAD, model_scenario
 from estimator.simulate.scenarios import Scenario, get_scenario
@@ -163,14 +163,25 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _hold_warnings(scenario: Scenario, trajectory: Trajectory) -> list[str]:
-    """What a user of --model should know about the keyframe hold: actuators that cannot give
-    the force that holds it (`short_of_holding`), and a fall (the free body below `FALLEN` of
+    """What a user of --model should know about the keyframe hold: servos too stiff for the
+    Euler step (`unstable_under_euler`), actuators that cannot give the force that holds it
+    (`short_of_holding`), and a fall (the free body below `FALLEN` of
     its starting height): the log records it."""
     model = load_model(scenario.model)
     key = scenario.keyframe
     if isinstance(key, str):
         key = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, key)
     out = []
+    unstable = unstable_under_euler(model, key)
+    if unstable:
+        h, worst = model.opt.timestep, max(unstable.values())
+        out.append(
+            f"the Euler step at timestep {h:g} s cannot integrate the servo feedback of "
+            f"{', '.join(unstable)} (h kv/m or h √(kp/m) up to {worst:.2g}, stable below 2): a "
+            f'<option timestep="{h * 2.0 / worst:.2g}"/> or smaller would (the analytic '
+            "inverse needs the Euler step, not the implicit integrators such servos are "
+            "written for)"
+        )
     short = short_of_holding(model, key)
     if short:
         out.append(

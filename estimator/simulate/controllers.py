@@ -454,6 +454,39 @@ def holding_forces(model: mujoco.MjModel, data: mujoco.MjData, clip: bool = True
     return np.where(limited, np.clip(force, lo, hi), force)
 
 
+def actuator_inertia(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
+    """(nu,) the mass matrix M along each actuator's moment r at data's positions,
+    r M rᵀ / |r|⁴ (a joint's M_jj / gear², armature included)."""
+    moment = moment_dense(model, data)
+    mass = np.zeros((model.nv, model.nv))
+    mujoco.mj_fullM(model, data, mass)
+    r2 = np.maximum(np.sum(moment**2, axis=1), 1e-300)
+    return np.einsum("iu,uv,iv->i", moment, mass, moment) / r2**2
+
+
+def unstable_under_euler(model: mujoco.MjModel, keyframe: int) -> dict[str, float]:
+    """The actuators whose own feedback the semi-implicit Euler step cannot integrate at the
+    model's timestep h, each with max(h kv/m, h √(kp/m)): a servo's velocity gain kv (its bias
+    −kv l̇) on the inertia m it drives is stable only for h kv/m < 2, its stiffness kp only for
+    h √(kp/m) < 2. Menagerie's Spot and Panda servos run with the implicit integrator
+    upstream; under the Euler step the analytic inverse needs they shake and fall (the Panda
+    at 2 ms; `physics/models/menagerie/convert.py` runs it at 0.5 ms)."""
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, keyframe)
+    mujoco.mj_forward(model, data)
+    m = actuator_inertia(model, data)
+    h = float(model.opt.timestep)
+    affine = model.actuator_biastype == mujoco.mjtBias.mjBIAS_AFFINE
+    kp = np.where(affine, -model.actuator_biasprm[:, 1], 0.0)
+    kv = np.where(affine, -model.actuator_biasprm[:, 2], 0.0)
+    ratio = np.maximum(h * kv / m, h * np.sqrt(np.maximum(kp, 0.0) / m))
+    names = [
+        mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_ACTUATOR, a) or f"#{a}"
+        for a in range(model.nu)
+    ]
+    return {names[a]: float(ratio[a]) for a in np.flatnonzero(ratio >= 2.0)}
+
+
 def short_of_holding(model: mujoco.MjModel, keyframe: int) -> list[str]:
     """The actuators that cannot hold `keyframe` still, each as "name needs F (can give
     lo … hi)": the force that would (`holding_forces`) outside what their forcerange, their
@@ -549,11 +582,7 @@ class KeyframeHold:
         self.q_lo = np.where(ranged, model.jnt_range[joints, 0], -np.inf)
         self.q_hi = np.where(ranged, model.jnt_range[joints, 1], np.inf)
         # motor gains
-        moment = moment_dense(model, data)
-        mass = np.zeros((model.nv, model.nv))
-        mujoco.mj_fullM(model, data, mass)
-        r2 = np.maximum(np.sum(moment**2, axis=1), 1e-300)
-        inertia = np.einsum("iu,uv,iv->i", moment, mass, moment) / r2**2
+        inertia = actuator_inertia(model, data)
         omega = min(2.0 * np.pi * bandwidth_hz, 0.5 / float(model.opt.timestep))
         self.kp, self.kd = inertia * omega**2, 2.0 * inertia * omega
         # excitation: three sines per actuated hinge
