@@ -182,69 +182,101 @@ def build_problem(
     predicted between its two knots (`SensorBlock.alpha`); False: interpolated to the knots
     (the filters, which step from knot to knot).
     """
-    model, sensor_names = compiled or model_with_sensors(config)
-    model = copy.deepcopy(model)  # the softness settings scale it: once, not once per window
-    h = settings.h or float(model.opt.timestep)
-    if abs(h - model.opt.timestep) > 1e-12:
-        model.opt.timestep = h
-    try:
-        settings.apply_softness(model)
-    except UnsupportedModelError as err:  # κ below 2h
-        raise softness_error(config, err) from None
-    if t_ns is None:
-        t_ns = knot_grid(measurements, h)
-    blocks: list[SensorBlock] = []
-    walks: list[np.ndarray] = []  # per bias dim: random walk σ per √s, σ of b_0
-    priors: list[np.ndarray] = []
-    bias_of: dict[str, slice] = {}
-    efforts: dict[int, np.ndarray] = {}
-    nb = 0
-    for name, stream in config.streams.items():
-        m = measurements.get(name)
-        unit = UNITS.get(stream.kind)
-        if m is None or not len(m) or unit is None:
-            continue
-        rows = [_sensor_rows(model, s) for s in sensor_names[name]]
-        out = unit.factors(stream, m, rows, Grid(model, t_ns, settings, nb, at_sample_times))
-        blocks += out.blocks
-        efforts |= out.efforts
-        if len(out.bias_walk):
-            walks.append(out.bias_walk)
-            priors.append(out.bias_prior)
-            bias_of[name] = slice(nb, nb + len(out.bias_walk))
-            nb += len(out.bias_walk)
-    imu_streams = [n for n in bias_of if config.streams[n].kind == "imu"]
-    qfrc_known, known_sigma, actuated, ctrl = _known_forces(
-        model, config, measurements, efforts, t_ns, settings
-    )
-    # the kinematic method: no physics factor anywhere
-    sigma = np.full_like(known_sigma, np.inf) if settings.method == "kinematic" else known_sigma
-    error_dofs = np.zeros(0, int)
-    if settings.method == "physics" and settings.model_error_std > 0:
-        error_dofs = np.flatnonzero(~actuated)
-        walks.append(np.full(len(error_dofs), settings.model_error_walk))
-        priors.append(np.full(len(error_dofs), settings.model_error_std))
-        bias_of[MODEL_ERROR] = slice(nb, nb + len(error_dofs))
-        nb += len(error_dofs)
-    bias_walk = np.concatenate(walks) if walks else np.zeros(0)
-    bias_prior = np.concatenate(priors) if priors else np.zeros(0)
-    return Problem(
-        model,
-        h,
-        t_ns,
-        blocks,
-        qfrc_known,
-        known_sigma,
-        sigma,
-        settings,
-        nb,
-        imu_streams,
-        bias_walk,
-        bias_prior,
-        bias_of,
-        error_dofs,
-        ctrl,
-    )
+    return ProblemBuilder(config, settings, compiled).build(measurements, t_ns, at_sample_times)
+
+
+class ProblemBuilder:
+    """What `build_problem` does that does not depend on the measurements, done once for
+    problems built again and again (a stream's filter, one knot at a time): the model copied
+    with the settings' timestep and softness, each stream's sensor rows, the actuators' moment
+    arms at the model's reference configuration. The problems it builds share its model."""
+
+    def __init__(
+        self,
+        config: Config,
+        settings: Settings,
+        compiled: tuple[mujoco.MjModel, dict[str, list[str]]] | None = None,
+    ) -> None:
+        model, sensor_names = compiled or model_with_sensors(config)
+        model = copy.deepcopy(model)  # the softness settings scale it
+        self.h = settings.h or float(model.opt.timestep)
+        if abs(self.h - model.opt.timestep) > 1e-12:
+            model.opt.timestep = self.h
+        try:
+            settings.apply_softness(model)
+        except UnsupportedModelError as err:  # κ below 2h
+            raise softness_error(config, err) from None
+        self.config, self.settings, self.model = config, settings, model
+        self.rows = {
+            name: [_sensor_rows(model, s) for s in sensor_names[name]] for name in config.streams
+        }
+        data = mujoco.MjData(model)
+        mujoco.mj_forward(model, data)
+        self.moment = moment_dense(model, data)  # (nu, nv)
+
+    def build(
+        self,
+        measurements: Mapping[str, Measurement],
+        t_ns: np.ndarray | None = None,
+        at_sample_times: bool = True,
+    ) -> Problem:
+        """`build_problem` on this builder's model."""
+        config, settings, model, h = self.config, self.settings, self.model, self.h
+        if t_ns is None:
+            t_ns = knot_grid(measurements, h)
+        blocks: list[SensorBlock] = []
+        walks: list[np.ndarray] = []  # per bias dim: random walk σ per √s, σ of b_0
+        priors: list[np.ndarray] = []
+        bias_of: dict[str, slice] = {}
+        efforts: dict[int, np.ndarray] = {}
+        nb = 0
+        for name, stream in config.streams.items():
+            m = measurements.get(name)
+            unit = UNITS.get(stream.kind)
+            if m is None or not len(m) or unit is None:
+                continue
+            out = unit.factors(
+                stream, m, self.rows[name], Grid(model, t_ns, settings, nb, at_sample_times)
+            )
+            blocks += out.blocks
+            efforts |= out.efforts
+            if len(out.bias_walk):
+                walks.append(out.bias_walk)
+                priors.append(out.bias_prior)
+                bias_of[name] = slice(nb, nb + len(out.bias_walk))
+                nb += len(out.bias_walk)
+        imu_streams = [n for n in bias_of if config.streams[n].kind == "imu"]
+        qfrc_known, known_sigma, actuated, ctrl = _known_forces(
+            model, self.moment, config, measurements, efforts, t_ns, settings
+        )
+        # the kinematic method: no physics factor anywhere
+        sigma = np.full_like(known_sigma, np.inf) if settings.method == "kinematic" else known_sigma
+        error_dofs = np.zeros(0, int)
+        if settings.method == "physics" and settings.model_error_std > 0:
+            error_dofs = np.flatnonzero(~actuated)
+            walks.append(np.full(len(error_dofs), settings.model_error_walk))
+            priors.append(np.full(len(error_dofs), settings.model_error_std))
+            bias_of[MODEL_ERROR] = slice(nb, nb + len(error_dofs))
+            nb += len(error_dofs)
+        bias_walk = np.concatenate(walks) if walks else np.zeros(0)
+        bias_prior = np.concatenate(priors) if priors else np.zeros(0)
+        return Problem(
+            model,
+            h,
+            t_ns,
+            blocks,
+            qfrc_known,
+            known_sigma,
+            sigma,
+            settings,
+            nb,
+            imu_streams,
+            bias_walk,
+            bias_prior,
+            bias_of,
+            error_dofs,
+            ctrl,
+        )
 
 
 def joint_name(model: mujoco.MjModel, j: int) -> str:
@@ -286,6 +318,7 @@ def _sensor_rows(model: mujoco.MjModel, name: str) -> np.ndarray:
 
 def _known_forces(
     model: mujoco.MjModel,
+    moment: np.ndarray,
     config: Config,
     measurements: Mapping[str, Measurement],
     efforts: Mapping[int, np.ndarray],
@@ -293,7 +326,8 @@ def _known_forces(
     settings: Settings,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """qfrc_known (T, nv), the physics factor's σ (T, nv), which dofs an actuator drives (nv,)
-    and the commands held at the knots, ctrl (T, nu) (NaN: none).
+    and the commands held at the knots, ctrl (T, nu) (NaN: none). moment: the actuators'
+    moment arms (nu, nv), which say which dofs they drive.
 
     Unactuated dofs: u_known = 0 with σ_unactuated. Actuated dofs: the force of the logged
     commands through the actuators at each knot's state (`Problem.u_known`; qfrc_known 0
@@ -302,9 +336,6 @@ def _known_forces(
     holds them), their stream's time offset applied by the reader.
     """
     T, nv = len(t_ns), model.nv
-    d = mujoco.MjData(model)
-    mujoco.mj_forward(model, d)
-    moment = moment_dense(model, d)  # (nu, nv)
     actuated = np.any(moment != 0, axis=0)
     known = np.full((T, nv), np.nan)
     known[:, ~actuated] = 0.0

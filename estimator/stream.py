@@ -24,9 +24,11 @@ model's own softness meanwhile, then re-solves its window with the fitted one.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import pickle
+import queue
 import shutil
 import subprocess
 import sys
@@ -37,6 +39,7 @@ from collections import deque
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from threadpoolctl import ThreadpoolController
@@ -56,6 +59,7 @@ from estimator.io.logs.measurements import (
 from estimator.io.logs.samples import SampleExtractor
 from estimator.io.logs.source import RawMessage
 from estimator.knots import MAX_KNOTS
+from estimator.newest import NewestFilter
 from estimator.problem import model_with_sensors
 from estimator.run import WINDOW_MARGIN_NS, softness_fitted
 from estimator.settings import Settings
@@ -74,6 +78,13 @@ from physics.model import weight
 BACKLOG_STEP = 0.5
 
 
+NEWEST = ("smoother", "filter")  # where a stream's newest estimate comes from (`Stream`)
+
+# the samples the filter keeps before the key it steps from (each stream's last one before it
+# is kept too: a held command, a pose to interpolate from)
+FILTER_MARGIN_NS = 100_000_000
+
+
 # the process's BLAS, held to one thread while the solver runs beside MuJoCo's threads: on a
 # busy machine a multithreaded OpenBLAS spin-waits (humanoid_push's incremental update with a
 # second process busy: 44 ms on one BLAS thread, 167 ms on two, 109 of them in the Cholesky)
@@ -85,7 +96,10 @@ class Update:
     """What one solve publishes. estimate: the window's knots; newest / smoothed: indices
     into it (`LagStep`); latency_s: per newest knot, from the arrival of the sample that made
     it ready to now; backlog: knots ready and not yet solved when the solve started;
-    relinearized: the keys whose rows the solve relinearized (a whole-window solve: all)."""
+    relinearized: the keys whose rows the solve relinearized (a whole-window solve: all).
+    With `Stream(newest="filter")` an update is either the filter's (`source` "filter": the
+    newest knots, as soon as they are ready) or the smoother's (only smoothed knots; backlog
+    and solve_s are its own)."""
 
     estimate: Estimate
     newest: range
@@ -96,6 +110,8 @@ class Update:
     event: str = ""  # a divergence detected, and what was done
     events: list[Event] = field(default_factory=list)  # diagnostics (`Stream(diagnose=…)`)
     relinearized: int = 0
+    at_ns: int = 0  # the smoother's newest knot when it was made (its events' time)
+    source: str = "smoother"  # "filter": the newest knots of `Stream(newest="filter")`
 
 
 @dataclass
@@ -222,6 +238,186 @@ class SoftnessFitJob:
         self.folder.cleanup()
 
 
+class SmootherJob:
+    """The fixed-lag smoother of a `Stream(newest="filter")` in a Python process of its own
+    (`smoother_job`, at a lower priority than the node's filter), fed the node's samples and
+    sending back its updates with the smoothed knots only (and its diagnostics).
+
+    Samples go out and updates come in through the process's stdin and stdout, pickled, each
+    way on a thread of its own, so that the filter never waits for the pipe."""
+
+    def __init__(
+        self,
+        config: Config,
+        settings: Settings,
+        lag_s: float,
+        stale_s: float,
+        diagnose: DetectorSettings | None,
+        relinearize_s: float,
+    ) -> None:
+        one = {"PHYSFUSE_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+        self.process = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                "from estimator.stream import smoother_job; smoother_job()",
+                str(os.getpid()),
+            ],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env={**os.environ, **one},
+        )
+        self.outbox: queue.Queue[tuple[str, Any] | None] = queue.Queue()
+        self.inbox: queue.Queue[tuple[str, Any]] = queue.Queue()
+        # (the config by its file: its streams are read-only mappings, which do not pickle)
+        start = (config.path, config.start_pose, settings, lag_s, stale_s, diagnose, relinearize_s)
+        self.send(("start", start))
+        threading.Thread(target=self._write, daemon=True).start()
+        threading.Thread(target=self._read, daemon=True).start()
+        self.done = False
+
+    def send(self, item: tuple[str, Any]) -> None:
+        self.outbox.put(item)
+
+    def wait_ready(self, timeout_s: float) -> None:
+        """Wait until the process has started its smoother (its interpreter's imports take a
+        second or two of a core: a node that took samples meanwhile would start behind)."""
+        try:
+            kind, payload = self.inbox.get(timeout=timeout_s)
+        except queue.Empty:
+            return
+        if kind != "ready":
+            self.inbox.put((kind, payload))  # (an error: `results` raises it)
+
+    def _write(self) -> None:
+        pipe = self.process.stdin
+        assert pipe is not None
+        with contextlib.suppress(BrokenPipeError, OSError):  # (the job ended: `_read` says why)
+            while (item := self.outbox.get()) is not None:
+                pickle.dump(item, pipe, protocol=pickle.HIGHEST_PROTOCOL)
+                pipe.flush()
+
+    def _read(self) -> None:
+        pipe = self.process.stdout
+        assert pipe is not None
+        try:
+            while True:
+                self.inbox.put(pickle.load(pipe))
+        except (EOFError, OSError, pickle.UnpicklingError):
+            status = self.process.wait()
+            self.inbox.put(("ended", f"the smoother's process ended with status {status}"))
+
+    def results(self, timeout: float | None = 0.0) -> list[tuple[Update, dict]]:
+        """The updates back so far (waiting up to `timeout` s for the first)."""
+        out: list[tuple[Update, dict]] = []
+        while not self.done:
+            try:
+                kind, payload = (
+                    self.inbox.get(timeout=timeout) if not out else self.inbox.get_nowait()
+                )
+            except queue.Empty:
+                break
+            if kind == "update":
+                out.append(payload)
+            elif kind == "ready":
+                continue
+            elif kind in ("done", "ended", "error"):
+                self.done = True
+                if kind != "done":
+                    raise LogError(f"the stream's smoother: {payload}")
+        return out
+
+    def finish(self, timeout_s: float = 600.0) -> list[tuple[Update, dict]]:
+        """Close the smoother's window and wait for its last updates."""
+        self.send(("close", None))
+        out: list[tuple[Update, dict]] = []
+        deadline = time.perf_counter() + timeout_s
+        while not self.done and time.perf_counter() < deadline:
+            out += self.results(timeout=1.0)
+        self.close()
+        return out
+
+    def close(self) -> None:
+        self.outbox.put(None)
+        if self.process.poll() is None:
+            try:
+                self.process.wait(5.0)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+
+
+def smoother_job() -> None:
+    """The process of a `SmootherJob`: a `Stream(newest="smoother")` fed from stdin."""
+    os.nice(5)  # (the node's filter first)
+    parent = int(sys.argv[1])
+    inp, out = sys.stdin.buffer, sys.stdout.buffer
+    sys.stdout = sys.stderr  # (the pipe is the updates')
+    threading.Thread(target=_exit_with, args=(parent,), daemon=True).start()
+    inbox: queue.Queue[tuple[str, Any]] = queue.Queue()
+
+    def read() -> None:
+        with contextlib.suppress(EOFError, OSError):
+            while True:
+                inbox.put(pickle.load(inp))
+        inbox.put(("close", None))  # (the node is gone: end)
+
+    def send(kind: str, payload: Any) -> None:
+        pickle.dump((kind, payload), out, protocol=pickle.HIGHEST_PROTOCOL)
+        out.flush()
+
+    try:
+        _, (path, start_pose, settings, lag_s, stale_s, diagnose, relinearize_s) = pickle.load(inp)
+        config = dataclasses.replace(load_config(path), start_pose=start_pose)
+        stream = Stream(
+            config, settings, lag_s, stale_s, diagnose=diagnose, relinearize_s=relinearize_s
+        )
+        send("ready", None)
+        threading.Thread(target=read, daemon=True).start()
+        closing = False
+        while not closing:
+            items = [inbox.get()]
+            while not inbox.empty():  # (all that came while it solved: one update for them)
+                items.append(inbox.get_nowait())
+            for kind, payload in items:
+                if kind == "samples":
+                    for sample, arrival in payload:
+                        stream.push_sample(sample, arrival)
+                closing = closing or kind == "close"
+            updates = stream.close() if closing else stream.update()
+            for update in updates:
+                if len(update.smoothed) or update.events or update.event:
+                    send("update", (_smoothed_only(update), _job_counts(stream)))
+        send("done", _job_counts(stream))
+    except (ConfigError, LogError) as err:
+        send("error", str(err))
+    except Exception as err:  # (one line back to the node)
+        send("error", f"{type(err).__name__}: {err}")
+    out.flush()
+    os._exit(0)  # (the reader thread may be blocked on stdin: no interpreter shutdown)
+
+
+def _smoothed_only(update: Update) -> Update:
+    """The part of a smoother's update a filtered stream publishes: its smoothed knots."""
+    sm = update.smoothed
+    estimate = update.estimate.at(slice(sm.start, sm.stop))
+    return replace(
+        update, estimate=estimate, newest=range(0), smoothed=range(len(sm)), latency_s=[]
+    )
+
+
+def _job_counts(stream: Stream) -> dict[str, Any]:
+    c = stream.counts
+    return {"late": c.late, "divergences": c.divergences, "softness_fit": stream.softness_fit}
+
+
+def _exit_with(parent: int) -> None:
+    """A job's watchdog: end the process once the node that started it is gone."""
+    while os.getppid() == parent:
+        time.sleep(ORPHAN_POLL_S)
+    os._exit(1)
+
+
 ORPHAN_POLL_S = 0.5  # how often a fit's process checks that its node is still there
 
 
@@ -264,6 +460,11 @@ class Stream:
     clock: the time of arrival of a pushed message (seconds; `time.perf_counter`).
     diagnose: run the unmodeled-contact and slip detectors on the newest knots
         (`Update.events`; `estimator.diagnose.online`, `estimator.diagnose.slip`).
+    newest: "smoother" — each update solves the ready knots and publishes the smoother's
+        newest estimate of them; "filter" — the newest estimate of each ready knot comes from
+        an EKF step (`estimator.newest`, a few ms), and the fixed-lag smoother runs in a
+        process of its own (`SmootherJob`), whose smoothed knots (and diagnostics) come back
+        in later updates.
     settings.fit_softness = "first_window" (and a config that does not give the softness):
         the softness fitted on the first fit_softness_s of knots (`SoftnessFitJob`; its
         result in `softness_fit`), the window re-solved with it once it is done.
@@ -278,13 +479,27 @@ class Stream:
         clock: Callable[[], float] = time.perf_counter,
         diagnose: DetectorSettings | None = None,
         relinearize_s: float = RELINEARIZE_S,
+        newest: str = "smoother",
     ) -> None:
+        if newest not in NEWEST:
+            raise ConfigError(f"newest {newest!r}: expected one of {', '.join(NEWEST)}")
         self.config, self.settings, self.clock = config, settings, clock
         self.compiled = model_with_sensors(config)
         self.model = self.compiled[0]
         self.h = settings.h or float(self.model.opt.timestep)
         self.detector, self.slips = None, None
-        if diagnose is not None:
+        # newest = "filter": the filter here, the smoother (and the detectors) in its process
+        self.job = (
+            SmootherJob(config, settings, lag_s, stale_s, diagnose, relinearize_s)
+            if newest == "filter"
+            else None
+        )
+        self.filter: NewestFilter | None = None
+        self.filtered_until = -1  # the newest key the filter published
+        self.filter_divergences = 0
+        self.pending: list[tuple[Sample, float]] = []  # samples not yet sent to the job
+        self.job_counts: dict[str, int] = {}
+        if diagnose is not None and self.job is None:
             sigma_f = settings.contact_force_std * weight(self.model)
             self.detector = OnlineDetector(self.model, sigma_f, self.h, diagnose)
             self.slips = OnlineSlips(self.model, weight(self.model), self.h, diagnose)
@@ -298,6 +513,7 @@ class Stream:
         self.first_t: dict[str, int] = {}
         self.last_t: dict[str, int] = {}
         self.lag: FixedLag | None = None
+        self.t0_ns: int | None = None  # the knots' grid: t0_ns + k h, once it has started
         self.ready_until = -1  # the newest ready key (global)
         self.solved_until = -1  # the newest key solved
         # (newest key readied, arrival of the sample that readied it), oldest first
@@ -308,6 +524,7 @@ class Stream:
             settings.fit_softness == "first_window"
             and settings.method == "physics"
             and not settings.sets_softness
+            and self.job is None  # (the job's smoother fits it)
         )
         self.fit_keys = round(settings.fit_softness_s / self.h) if fits else 0
         self.fit_buffers = (
@@ -345,6 +562,8 @@ class Stream:
         if lag is not None and sample.t_ns < lag.t_ns(lag.first, lag.first + 1)[0]:
             self.counts.late += 1  # its knots have left the window
             return
+        if self.job is not None:
+            self.pending.append((sample, arrival))  # (the smoother's own checks there)
         self.counts.samples += 1
         self.buffers[sample.stream].add(sample)
         if self.fit_buffers is not None:
@@ -352,6 +571,11 @@ class Stream:
         self.first_t.setdefault(sample.stream, sample.t_ns)
         self.last_t[sample.stream] = sample.t_ns
         self._advance_ready(arrival)
+
+    def wait_ready(self, timeout_s: float = 30.0) -> None:
+        """newest = "filter": wait until the smoother's process is up (before taking samples)."""
+        if self.job is not None:
+            self.job.wait_ready(timeout_s)
 
     @property
     def bad_counts(self) -> Mapping[str, BadSampleCounts]:
@@ -365,6 +589,10 @@ class Stream:
         them, or (a backlog) one per half lag of new keys (`BACKLOG_STEP`).
         min_knots: wait until at least this many keys are ready (fewer, larger solves:
         throughput for latency)."""
+        if self.job is not None:
+            yield from self._filtered(min_knots)
+            yield from self._smoothed()
+            return
         self._fit_softness()
         if self.ready_until - self.solved_until < min_knots:
             return
@@ -385,6 +613,11 @@ class Stream:
         for sample in self.extractor.flush():
             self.push_sample(sample, arrival)
         yield from self.update()
+        if self.job is not None:
+            self.job.send(("samples", self.pending))
+            self.pending = []
+            yield from self._smoothed(self.job.finish())
+            return
         if self.fit_job is not None and self.fit_job.result() is None:
             self.fit_job.cancel()  # (the stream ended before its fit)
             event = (
@@ -464,12 +697,12 @@ class Stream:
         if not tracked:
             return
         newest = max(tracked.values())
-        if self.lag is None:
+        if self.t0_ns is None:
             self._start(newest)
-            if self.lag is None:
+            if self.t0_ns is None:
                 return
         live = [t for t in tracked.values() if t >= newest - self.stale_ns]
-        ready = int((min(live) - self.lag.t0_ns) // self.step_ns)
+        ready = int((min(live) - self.t0_ns) // self.step_ns)
         if ready <= self.ready_until:
             return
         if ready - self.ready_until >= MAX_KNOTS:  # streams on different clocks, or a jump
@@ -498,7 +731,10 @@ class Stream:
                 f"started without {', '.join(waiting)} (silent {self.stale_ns / 1e9:g} s after "
                 "the first stream)"
             )
-        if self.relinearize:
+        self.t0_ns = earliest
+        if self.job is not None:
+            self.filter = NewestFilter(self.config, self.settings, self.compiled, earliest, self.h)
+        elif self.relinearize:
             self.lag = IncrementalLag(
                 self.config,
                 self.settings,
@@ -517,6 +753,63 @@ class Stream:
         while marks and marks[0][0] < key:
             marks.popleft()
         return marks[0][1] if marks else default
+
+    # -- newest = "filter" ---------------------------------------------------------------------
+
+    def _filtered(self, min_knots: int) -> Iterator[Update]:
+        """The filter's step over the keys that became ready (samples on to the job first)."""
+        job, nf = self.job, self.filter
+        assert job is not None
+        if self.pending:
+            job.send(("samples", self.pending))
+            self.pending = []
+        if nf is None or self.ready_until - self.filtered_until < min_knots:
+            return
+        start = self.clock()
+        backlog = self.ready_until - self.filtered_until
+        keep_from = int(nf.t_ns(self.filtered_until, self.filtered_until + 1)[0]) - FILTER_MARGIN_NS
+        for b in self.buffers.values():
+            b.trim(keep_from)
+        measurements = _as_measurements(self.config, self.buffers, self.bad_counts)
+        with BLAS.limit(limits=1, user_api="blas"):
+            est = nf.add(measurements, self.ready_until)
+        self.filtered_until = self.ready_until
+        if nf.diverged:
+            self.filter_divergences += 1
+            self.counts.divergences += 1
+            self._report(f"{nf.diverged}: the filter restarted from the measurements")
+        if est is None:
+            return
+        first = int((est.t_ns[0] - nf.t0_ns) // nf.step_ns)
+        now = self.clock()
+        latency = [now - self._arrival(first + i, now) for i in range(est.T)]
+        self.counts.knots_newest += est.T
+        self.counts.updates += 1
+        event, self.pending_event = self.pending_event, ""
+        yield Update(
+            est,
+            range(est.T),
+            range(0),
+            latency,
+            backlog,
+            now - start,
+            event,
+            at_ns=int(est.t_ns[-1]),
+            source="filter",
+        )
+
+    def _smoothed(self, updates: list[tuple[Update, dict]] | None = None) -> Iterator[Update]:
+        """The smoother's updates that came back from its process."""
+        assert self.job is not None
+        for update, counts in self.job.results() if updates is None else updates:
+            c = self.counts
+            c.knots_smoothed += len(update.smoothed)
+            c.updates += 1
+            c.late, c.divergences = counts["late"], counts["divergences"] + self.filter_divergences
+            if update.event:
+                c.events.append(update.event)
+            self.softness_fit = counts.get("softness_fit", self.softness_fit)
+            yield update
 
     def _measurements(self) -> dict[str, Measurement]:
         """The buffered samples around the window, as the batch reader's arrays."""
@@ -547,6 +840,7 @@ class Stream:
                 "measurements"
             )
         event, self.pending_event = self.pending_event, ""
+        t = step.estimate.t_ns
         return Update(
             step.estimate,
             step.newest,
@@ -557,4 +851,5 @@ class Stream:
             event,
             events,
             step.relinearized,
+            int(t[step.newest[-1]] if step.newest else t[-1]),
         )

@@ -219,6 +219,13 @@ class _Physics:
         )
         return A, C
 
+    def linearize(self, q: np.ndarray, v: np.ndarray, u: np.ndarray) -> Linearization:
+        """Everything an EKF step needs at one state, each derivative once."""
+        s = self.sensors(q, v, u, nominal=True)
+        A, C = self.transition(q, v, u, want_A=True, want_C=True)
+        da, ds = self.force_response(q, v, u)
+        return Linearization(s, A, C, da, ds)
+
     def force_response(
         self, q: np.ndarray, v: np.ndarray, u: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -240,22 +247,45 @@ class _Physics:
         return da, ds
 
 
+@dataclass(frozen=True)
+class Linearization:
+    """The physics at one state: sensordata s (ns,), A = ∂x'/∂x and C = ∂s/∂x
+    (`_Physics.transition`), ∂a/∂u and ∂s/∂u (`_Physics.force_response`)."""
+
+    s: np.ndarray
+    A: np.ndarray
+    C: np.ndarray
+    da: np.ndarray
+    ds: np.ndarray
+
+
+@dataclass(frozen=True)
+class Force:
+    """The known generalized force of a step, u (nv,), and its variance σ_f² (nv,)."""
+
+    u: np.ndarray
+    var: np.ndarray
+
+
 # ---------------------------------------------------------------------------------------------
 # the measurement of one knot
 
 
 @dataclass(frozen=True)
-class _Knot:
-    """The sensor blocks measured at knot k: z (m,), σ (m,), and each block's rows."""
+class Knot:
+    """The sensor blocks measured at knot k of their problem: z (m,), σ (m,), and each block's
+    rows; key: the knot's index in the whole run (a stream's filter steps through problems of
+    a few knots each)."""
 
     k: int
     blocks: list[SensorBlock]
     rows: list[slice]
     z: np.ndarray
     sigma: np.ndarray
+    key: int
 
     @classmethod
-    def at(cls, problem: Problem, k: int) -> _Knot:
+    def at(cls, problem: Problem, k: int, key: int | None = None) -> Knot:
         blocks, rows, z, sigma = [], [], [], []
         start = 0
         for b in (e for block in problem.blocks for e in block.elements()):
@@ -268,9 +298,10 @@ class _Knot:
             z.append(np.zeros(3) if b.kind == "quat" else meas)
             sigma.append(b.sigma[k] if b.sigma.ndim == 2 else b.sigma)
             start += n
+        key = k if key is None else key
         if not blocks:
-            return cls(k, [], [], np.zeros(0), np.zeros(0))
-        return cls(k, blocks, rows, np.concatenate(z), np.concatenate(sigma))
+            return cls(k, [], [], np.zeros(0), np.zeros(0), key)
+        return cls(k, blocks, rows, np.concatenate(z), np.concatenate(sigma), key)
 
     def predict(self, s: np.ndarray, bias: np.ndarray) -> np.ndarray:
         """(N, m) predicted rows for sensordata s (N, ns) and biases (N, nb)."""
@@ -365,7 +396,7 @@ def _unscented_transform(
     return x, P if noise_cov is None else P + noise_cov
 
 
-class _Filter:
+class Filter:
     """One pass over the knots: predict with the physics step, update with the knot's sensors."""
 
     def __init__(
@@ -377,9 +408,6 @@ class _Filter:
         self.chart = TangentChart.of(problem.model)
         nv, nb = problem.model.nv, problem.nb
         self.nv, self.nb, self.n = nv, nb, 2 * nv + nb
-        # the commands' force at the measured motion (the filters step with a known force)
-        self.u = np.nan_to_num(u_known_along(problem, qpos0))
-        self.force_var = _force_variance(problem)
         self.rejected: dict[str, int] = {}  # stream → knots with a block rejected
         self.rejected_since: dict[str, int] = {}  # stream → first knot of its rejections
         self.reference = qpos0[0].copy()
@@ -419,53 +447,62 @@ class _Filter:
         self.reference = self.chart.qpos(self.reference, x)
         x[: self.nv] = 0.0
 
-    def _process_noise(self, k: int, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Q of the step k → k+1 at (q, v): G diag(σ_f²) Gᵀ, and the bias walk."""
+    def _process_noise(self, da: np.ndarray, force: Force) -> np.ndarray:
+        """Q of a step with ∂a/∂u = da: G diag(σ_f²) Gᵀ, and the bias walk."""
         h, nv = self.p.h, self.nv
-        da, _ = self.physics.force_response(q, v, self.u[k])
         G = np.vstack([h * h * da, h * da])
         Q = np.zeros((self.n, self.n))
-        Q[: 2 * nv, : 2 * nv] = (G * self.force_var[k]) @ G.T
+        Q[: 2 * nv, : 2 * nv] = (G * force.var) @ G.T
         Q[2 * nv :, 2 * nv :] = np.diag(self.p.bias_walk**2 * h)
         return Q
 
-    def _sensor_force_noise(self, knot: _Knot, k: int, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    def _sensor_force_noise(
+        self, knot: Knot, q: np.ndarray, v: np.ndarray, force: Force
+    ) -> np.ndarray:
         """(m, m) D diag(σ_f²) Dᵀ: the force noise seen by acceleration-stage sensors."""
-        _, ds = self.physics.force_response(q, v, self.u[k])
-        s = self.physics.sensors(q, v, self.u[k])
+        _, ds = self.physics.force_response(q, v, force.u)
+        s = self.physics.sensors(q, v, force.u)
         D = knot.jacobian(s, ds)
-        return (D * self.force_var[k]) @ D.T
+        return (D * force.var) @ D.T
 
-    def _gate(self, knot: _Knot, y: np.ndarray, S: np.ndarray) -> np.ndarray:
+    def _gate(self, knot: Knot, y: np.ndarray, S: np.ndarray) -> np.ndarray:
         """The rows to update with: the chi-square gate, except for a stream rejected for
         longer than GATE_LOCKOUT_S (then the filter, not the stream, has drifted)."""
         accept = {
             stream
             for stream, first in self.rejected_since.items()
-            if (knot.k - first) * self.p.h > GATE_LOCKOUT_S
+            if (knot.key - first) * self.p.h > GATE_LOCKOUT_S
         }
         keep, rejected = knot.gate(y, S, accept)
         for stream in {b.stream for b in knot.blocks}:
             if stream in rejected:
                 self.rejected[stream] = self.rejected.get(stream, 0) + 1
-                self.rejected_since.setdefault(stream, knot.k)
+                self.rejected_since.setdefault(stream, knot.key)
             else:
                 self.rejected_since.pop(stream, None)
         return keep
 
     # -- EKF -------------------------------------------------------------------------------------
 
-    def ekf_update(self, k: int) -> None:
-        knot = _Knot.at(self.p, k)
+    def ekf_update(self, knot: Knot, force: Force, at: Linearization | None = None) -> None:
+        """The knot's sensors, at the force applied there; at: the physics linearized at the
+        prior (else here)."""
         if not knot.blocks:
             return
         x, nv = self.ekf.x, self.nv
         q, v, b = self.chart.qpos(self.reference, x), x[nv : 2 * nv], x[2 * nv :]
-        s = self.physics.sensors(q, v, self.u[k])
-        _, C = self.physics.transition(q, v, self.u[k], want_A=False, want_C=True)
-        H = np.hstack([knot.jacobian(s, C), knot.bias_jacobian(self.nb)])
+        if at is None:
+            s = self.physics.sensors(q, v, force.u)
+            _, C = self.physics.transition(q, v, force.u, want_A=False, want_C=True)
+            H = knot.jacobian(s, C)
+            R = np.diag(knot.sigma**2) + self._sensor_force_noise(knot, q, v, force)
+        else:  # (∂rows/∂x and ∂rows/∂u in one pass over the blocks)
+            s = at.s
+            HD = knot.jacobian(s, np.hstack([at.C, at.ds]))
+            H, D = HD[:, : 2 * nv], HD[:, 2 * nv :]
+            R = np.diag(knot.sigma**2) + (D * force.var) @ D.T
+        H = np.hstack([H, knot.bias_jacobian(self.nb)])
         predicted = knot.predict(s[None], b[None])[0]
-        R = np.diag(knot.sigma**2) + self._sensor_force_noise(knot, k, q, v)
         y = knot.z - predicted
         keep = self._gate(knot, y, H @ self.ekf.P @ H.T + R)
         if keep.size:
@@ -477,16 +514,21 @@ class _Filter:
             )
         self._recenter(self.ekf.x)
 
-    def ekf_predict(self, k: int) -> None:
-        """Step k → k+1 from the posterior at k: x = step(x), P = F P Fᵀ + Q (F from A)."""
+    def ekf_predict(self, force: Force, at: Linearization | None = None) -> None:
+        """One step from the posterior under the force: x = step(x), P = F P Fᵀ + Q (F from A,
+        at the posterior, or from `at`: the same step's prior, linearized once for both)."""
         x, nv = self.ekf.x, self.nv
         q, v = self.chart.qpos(self.reference, x), x[nv : 2 * nv].copy()
-        A, _ = self.physics.transition(q, v, self.u[k], want_A=True, want_C=False)
+        if at is None:
+            A, _ = self.physics.transition(q, v, force.u, want_A=True, want_C=False)
+            da, _ = self.physics.force_response(q, v, force.u)
+        else:
+            A, da = at.A, at.da
         F = np.eye(self.n)
         F[: 2 * nv, : 2 * nv] = A
         self.ekf.F = F
-        self.ekf.Q = self._process_noise(k, q, v)
-        q_next, v_next = self.physics.step(q, v, self.u[k])
+        self.ekf.Q = self._process_noise(da, force)
+        q_next, v_next = self.physics.step(q, v, force.u)
 
         def step() -> np.ndarray:
             self.reference = q_next
@@ -506,29 +548,28 @@ class _Filter:
         q_next, v_next = self.physics.step(self.chart.qpos(q_from, x), x[nv : 2 * nv], u)
         return np.concatenate([self.chart.coordinates(q_to, q_next), v_next, x[2 * nv :]])
 
-    def ukf_predict(self, k: int) -> None:
+    def ukf_predict(self, force: Force) -> None:
         assert self.ukf is not None
         x, nv = self.ukf.x, self.nv
         q, v = self.chart.qpos(self.reference, x), x[nv : 2 * nv]
-        q_to, _ = self.physics.step(q, v, self.u[k], nominal=True)  # the next reference
-        self.ukf.Q = self._process_noise(k, q, v)
+        q_to, _ = self.physics.step(q, v, force.u, nominal=True)  # the next reference
+        self.ukf.Q = self._process_noise(self.physics.force_response(q, v, force.u)[0], force)
         q_from, self.reference = self.reference, q_to
-        self.ukf.predict(UT=_unscented_transform, q_from=q_from, q_to=q_to, u=self.u[k])
+        self.ukf.predict(UT=_unscented_transform, q_from=q_from, q_to=q_to, u=force.u)
 
-    def ukf_update(self, k: int) -> None:
+    def ukf_update(self, knot: Knot, force: Force) -> None:
         """Sigma points of the prior through the sensors; gate per block; filterpy's update."""
         assert self.ukf is not None
         ukf, nv = self.ukf, self.nv
-        knot = _Knot.at(self.p, k)
         if knot.blocks:
             q, v = self.chart.qpos(self.reference, ukf.x), ukf.x[nv : 2 * nv]
-            R = np.diag(knot.sigma**2) + self._sensor_force_noise(knot, k, q, v)
-            self.physics.sensors(q, v, self.u[k], nominal=True)
+            R = np.diag(knot.sigma**2) + self._sensor_force_noise(knot, q, v, force)
+            self.physics.sensors(q, v, force.u, nominal=True)
             sigmas = ukf.sigmas_f
             s = np.array(
                 [
                     self.physics.sensors(
-                        self.chart.qpos(self.reference, x), x[nv : 2 * nv], self.u[k]
+                        self.chart.qpos(self.reference, x), x[nv : 2 * nv], force.u
                     )
                     for x in sigmas
                 ]
@@ -553,29 +594,34 @@ class _Filter:
     # -- the pass --------------------------------------------------------------------------------
 
     def run(
-        self, progress: Callable[[int, int], None] | None
+        self, qpos0: np.ndarray, progress: Callable[[int, int], None] | None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """qpos (T, nq), bias (T, nb) and the q block's standard deviations (T, nv)."""
+        """qpos (T, nq), bias (T, nb) and the q block's standard deviations (T, nv) over the
+        problem's knots; qpos0: the raw trajectory, at which the commands' force is taken."""
         T, nv = self.p.T, self.nv
+        # the commands' force at the measured motion (the filters step with a known force)
+        u = np.nan_to_num(u_known_along(self.p, qpos0))
+        var = _force_variance(self.p)
+        force = [Force(u[k], var[k]) for k in range(T)]
         qpos = np.zeros((T, self.p.model.nq))
         bias = np.zeros((T, self.nb))
         std = np.zeros((T, nv))
         # both filters start with the EKF from a broad prior (sigma points of a broad prior
         # would sit metres away); the UKF takes over after UKF_START_S
         handover = T if self.ukf is None else min(T, max(1, round(UKF_START_S / self.p.h)))
-        self.ekf_update(0)
-        self._tighten_initial_velocity()
+        self.ekf_update(Knot.at(self.p, 0), force[0])
+        self.tighten_initial_velocity()
         current: ExtendedKalmanFilter | UnscentedKalmanFilter = self.ekf
         for k in range(T):
             if 0 < k < handover:
-                self.ekf_predict(k - 1)
-                self.ekf_update(k)
+                self.ekf_predict(force[k - 1])
+                self.ekf_update(Knot.at(self.p, k), force[k])
             elif k >= handover and self.ukf is not None:
                 if k == handover:
                     self.ukf.x, self.ukf.P = self.ekf.x.copy(), self.ekf.P.copy()
                     current = self.ukf
-                self.ukf_predict(k - 1)
-                self.ukf_update(k)
+                self.ukf_predict(force[k - 1])
+                self.ukf_update(Knot.at(self.p, k), force[k])
             qpos[k] = self.reference
             bias[k] = current.x[2 * nv :]
             std[k] = np.sqrt(np.clip(np.diag(current.P)[:nv], 0.0, None))
@@ -583,7 +629,7 @@ class _Filter:
                 progress(k + 1, T)
         return qpos, bias, std
 
-    def _tighten_initial_velocity(self) -> None:
+    def tighten_initial_velocity(self) -> None:
         """v_0 came from two raw configurations: its σ is √2 σ_q / h (capped by INITIAL_STD)."""
         P, nv, h = self.ekf.P, self.nv, self.p.h
         var_v = np.minimum(2.0 * np.diag(P)[:nv] / h**2, INITIAL_STD**2)
@@ -619,9 +665,15 @@ def held_at_start(model: mujoco.MjModel, measured: np.ndarray, h: float) -> np.n
 
 def _force_variance(problem: Problem) -> np.ndarray:
     """(T, nv) σ_f² of the force on each dof: the physics σ of the settings; where no force
-    is known, the largest force its actuators can apply (Σ_a |moment| · max|force_a|, from the
-    force range, or gain · max|ctrl| for a fixed-gain actuator), else UNBOUNDED_FORCE_STD."""
-    model = problem.model
+    is known, `force_bound`."""
+    sigma = problem.physics_sigma
+    return np.where(np.isfinite(sigma), sigma, force_bound(problem.model)) ** 2
+
+
+def force_bound(model: mujoco.MjModel) -> np.ndarray:
+    """(nv,) the largest force the actuators can apply on each dof (Σ_a |moment| ·
+    max|force_a|, from the force range, or gain · max|ctrl| for a fixed-gain actuator), else
+    UNBOUNDED_FORCE_STD."""
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     moment = np.abs(moment_dense(model, data))  # (nu, nv)
@@ -639,9 +691,7 @@ def _force_variance(problem: Problem) -> np.ndarray:
             )
     contribution = np.where(moment > 0, moment * np.where(moment > 0, largest[:, None], 0.0), 0.0)
     bound = contribution.sum(axis=0)
-    bound = np.where(np.isfinite(bound) & (bound > 0), bound, UNBOUNDED_FORCE_STD)
-    sigma = np.where(np.isfinite(problem.physics_sigma), problem.physics_sigma, bound)
-    return sigma**2
+    return np.where(np.isfinite(bound) & (bound > 0), bound, UNBOUNDED_FORCE_STD)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -667,8 +717,8 @@ def filter_estimate(
     )
     measured = np.zeros((problem.T, problem.model.nq), dtype=bool)
     qpos0 = initial_trajectory(problem.model, measurements, problem.t_ns, measured_out=measured)
-    run = _Filter(problem, qpos0, method, held_at_start(problem.model, measured, problem.h))
-    qpos, bias, std = run.run(progress)
+    run = Filter(problem, qpos0, method, held_at_start(problem.model, measured, problem.h))
+    qpos, bias, std = run.run(qpos0, progress)
     finite = bool(np.all(np.isfinite(qpos)))
     warnings = [
         f"{stream}: measurements rejected by the chi-square gate (p = {GATE_PROBABILITY}) at "

@@ -43,7 +43,7 @@ from estimator.io.mcap_writer import EstimateWriter
 from estimator.model_checks import check_for_estimate
 from estimator.settings import Settings
 from estimator.solver.incremental import RELINEARIZE_S
-from estimator.stream import Stream, Update
+from estimator.stream import NEWEST, Stream, Update
 
 STATUS_EVERY_S = 1.0
 SMOOTHED_PREFIX = "/estimate_smoothed"
@@ -85,6 +85,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         type=int,
         metavar="PORT",
         help="serve the estimate live on a Foxglove WebSocket server on PORT (0: any free one)",
+    )
+    parser.add_argument(
+        "--newest",
+        choices=NEWEST,
+        default="filter",
+        help="where the newest estimate of each knot comes from: filter (an EKF step as soon as "
+        "the knot is ready, the smoother in a process of its own; default) or smoother (each "
+        "update of the fixed-lag smoother publishes its newest knots)",
     )
     parser.add_argument(
         "--iterations",
@@ -174,6 +182,7 @@ def run(args: argparse.Namespace) -> int:
         stale_s=args.stale,
         diagnose=detector if args.diagnose else None,
         relinearize_s=args.relinearize,
+        newest=args.newest,
     )
     model = config.load_model()
     imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
@@ -208,19 +217,27 @@ def run(args: argparse.Namespace) -> int:
             EstimateWriter(args.out, model, config.model_ref, stream.h, run_id, chunked=False)
         )
     status = Status(args.quiet)
+    stream.wait_ready()  # (the smoother's process up before the source is read)
     reader = DecodingReader(args.config, args.source, args.reconnect)
     previous = signal.signal(signal.SIGTERM, _interrupt)
     interrupted = False
+    later: deque[Update] = deque()  # smoothed knots to write between the newest ones
     try:
         done = False
         while not done:
             try:
-                done = _drain(reader.queue, stream, status)
+                done = _drain(reader.queue, stream, status, wait=not later)
                 status.queued.append(reader.queue.qsize())
                 for update in stream.update():
                     status.add(update, stream)
-                    _write(sinks, update, imu_sites, stream)
-                    rerun.log(update, stream)
+                    if update.source == "filter" or stream.job is None:
+                        _write(sinks, update, imu_sites, stream)
+                        rerun.log(update, stream)
+                    else:
+                        later.extend(_pieces(update))
+                if later:  # (a piece at a time: the next newest knots wait for no more)
+                    _write(sinks, later[0], imu_sites, stream)
+                    rerun.log(later.popleft(), stream)
                 status.show(stream)
             except KeyboardInterrupt:
                 interrupted = True
@@ -229,6 +246,9 @@ def run(args: argparse.Namespace) -> int:
         reader.close()
         signal.signal(signal.SIGTERM, previous)
         try:
+            for update in later:  # (added to the status when it came)
+                _write(sinks, update, imu_sites, stream)
+                rerun.log(update, stream)
             for update in stream.close():
                 status.add(update, stream)
                 _write(sinks, update, imu_sites, stream)
@@ -256,10 +276,11 @@ def _interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def _drain(inbox: Any, stream: Stream, status: Status) -> bool:
-    """Buffer every message waiting (waiting up to 50 ms for the first); True at the end."""
+def _drain(inbox: Any, stream: Stream, status: Status, wait: bool = True) -> bool:
+    """Buffer every message waiting (waiting up to 50 ms for the first, unless not `wait`);
+    True at the end."""
     try:
-        item = inbox.get(timeout=0.05)
+        item = inbox.get(timeout=0.05) if wait else inbox.get_nowait()
     except queue.Empty:
         return False
     while True:
@@ -283,21 +304,40 @@ def _drain(inbox: Any, stream: Stream, status: Status) -> bool:
             return False
 
 
+# smoothed knots written between two newest ones (a smoother's update brings up to half a lag
+# of them: ~2 ms each on the humanoid)
+PIECE_KNOTS = 4
+
+
+def _pieces(update: Update) -> list[Update]:
+    """A smoother's update as pieces of PIECE_KNOTS smoothed knots (its events with the first)."""
+    n = len(update.smoothed)
+    out = []
+    for i in range(0, max(n, 1), PIECE_KNOTS):
+        j = min(i + PIECE_KNOTS, n)
+        out.append(
+            replace(
+                update,
+                estimate=update.estimate.at(
+                    slice(update.smoothed.start + i, update.smoothed.start + j)
+                ),
+                smoothed=range(j - i),
+                newest=range(0),
+                events=update.events if i == 0 else [],
+            )
+        )
+    return out
+
+
 def _write(
     sinks: list[EstimateWriter], update: Update, imu_sites: dict[str, str], stream: Stream
 ) -> None:
     for sink in sinks:
         sink.write(update.estimate, update.newest, imu_sites)
         sink.write(update.estimate, update.smoothed, imu_sites, prefix=SMOOTHED_PREFIX)
-        for e in update.events:  # at the update's newest knot: when it was reported
-            assert stream.lag is not None
-            t = update.estimate.t_ns
-            write_event(
-                sink.writer,
-                e,
-                stream.lag.t0_ns,
-                int(t[update.newest[-1]] if update.newest else t[-1]),
-            )
+        for e in update.events:  # at the smoother's newest knot: when it was reported
+            assert stream.t0_ns is not None
+            write_event(sink.writer, e, stream.t0_ns, update.at_ns)
         sink.flush()
 
 
@@ -313,9 +353,9 @@ class _Rerun:
             self.live = LiveRecording(model, to, run_id, diagnose=diagnose)
 
     def log(self, update: Update, stream: Stream) -> None:
-        if self.live is not None and stream.lag is not None:
-            self.live.log(update.estimate, update.newest, stream.lag.t0_ns)
-            self.live.log(update.estimate, update.smoothed, stream.lag.t0_ns)
+        if self.live is not None and stream.t0_ns is not None:
+            self.live.log(update.estimate, update.newest, stream.t0_ns)
+            self.live.log(update.estimate, update.smoothed, stream.t0_ns)
             self.live.log_events(update.events)
 
     def close(self) -> None:
@@ -336,7 +376,10 @@ class Status:
         self.latency: list[float] = []
         self.backlog: list[int] = []
         self.solve: list[float] = []
-        self.relinearized: list[int] = []  # keys whose rows each update relinearized
+        # newest = "filter": the smoother's updates (in its own process)
+        self.smoother_backlog: list[int] = []
+        self.smoother_solve: list[float] = []
+        self.relinearized: list[int] = []  # keys whose rows each smoother update relinearized
         self.queued: list[int] = []  # messages waiting when the solver took the ready knots
         self.recent: deque[float] = deque(maxlen=500)
         self.lines: deque[str] = deque(maxlen=3)  # the latest source events and warnings
@@ -353,15 +396,20 @@ class Status:
     def add(self, update: Update, stream: Stream) -> None:
         self.latency += update.latency_s
         self.recent.extend(update.latency_s)
-        self.backlog.append(update.backlog)
-        self.solve.append(update.solve_s)
-        self.relinearized.append(update.relinearized)
+        if update.source == "filter" or stream.job is None:  # (the newest knots')
+            self.backlog.append(update.backlog)
+            self.solve.append(update.solve_s)
+        else:
+            self.smoother_backlog.append(update.backlog)
+            self.smoother_solve.append(update.solve_s)
+        if update.source == "smoother":
+            self.relinearized.append(update.relinearized)
         if update.event:
             self.log(update.event)
         for e in update.events:
-            assert stream.lag is not None
-            self.events.append(event_dict(e, stream.lag.t0_ns))
-            at = (e.start_ns - stream.lag.t0_ns) / 1e9
+            assert stream.t0_ns is not None
+            self.events.append(event_dict(e, stream.t0_ns))
+            at = (e.start_ns - stream.t0_ns) / 1e9
             self.log(f"{'event' if e.ongoing else 'event ended'} at {at:.3f} s: {message(e)}")
 
     def show(self, stream: Stream, final: bool = False) -> None:
@@ -394,6 +442,8 @@ class Status:
             "backlog": self.backlog,
             "queued": self.queued,
             "solve_s": self.solve,
+            "smoother_backlog": self.smoother_backlog,
+            "smoother_solve_s": self.smoother_solve,
             "relinearized": self.relinearized,
             "counts": asdict(stream.counts),
             "bad": {name: b.as_dict() for name, b in self.bad.items()},
