@@ -24,7 +24,7 @@ softness (a softness fitted later is the smoother's).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 
 import mujoco
 import numpy as np
@@ -72,38 +72,33 @@ class NewestFilter:
     def t_ns(self, start: int, stop: int) -> np.ndarray:
         return self.t0_ns + self.step_ns * np.arange(start, stop, dtype=np.int64)
 
-    def add(self, measurements: Mapping[str, Measurement], last_key: int) -> Estimate | None:
+    def steps(self, measurements: Mapping[str, Measurement], last_key: int) -> Iterator[Estimate]:
         """Filter the keys after the newest one up to last_key (their samples in
-        `measurements`); their Estimate (`.t_ns` says which), or None before the filter can
-        start. A state that is not finite any more restarts the filter at the next keys
-        (`diverged` says so)."""
+        `measurements`), one at a time: each key's Estimate (one knot) as soon as it is done
+        (nothing before the filter can start). A state that is not finite any more ends the
+        keys and restarts the filter at the next ones (`diverged` says so)."""
         self.diverged = ""
         if self.filter is None:
             if last_key < self.key + 2:
-                return None
+                return
             self._start(measurements, self.key + 1)
         first = self.key + 1
         if last_key < first:
-            return None
-        problem = self._problem(measurements, first, last_key + 1)
+            return
+        problem = self._problem(measurements, first, last_key + 1)  # (once for the keys)
         f = self.filter
         assert f is not None
-        states = []
         for i, k in enumerate(range(first, last_key + 1)):
             # (checked before the step: MuJoCo resets a NaN state to the model's reference)
             if not _finite(f):
                 self.diverged = f"the filter's state at key {k - 1} is not finite"
                 self.filter = None  # (restarted from the measurements at the next keys)
-                break
+                return
             f.ekf_predict(self.force, self.at)
             self._linearize(problem, i)
             f.ekf_update(Knot.at(problem, i, k), self.force, self.at)
-            states.append(self._state())
             self.key = k
-        if not states:
-            return None
-        done = problem if len(states) == problem.T else problem.keys(0, len(states))
-        return self._estimate(done, states)
+            yield self._estimate(problem, i)
 
     # -- the steps -----------------------------------------------------------------------------
 
@@ -144,42 +139,28 @@ class NewestFilter:
         self.force = Force(np.nan_to_num(u), sigma**2)
         self.at = f.physics.linearize(q, v, self.force.u)
 
-    def _state(self) -> tuple[np.ndarray, ...]:
-        """(qpos, qvel, bias, σ of q, u) of the newest key, its posterior."""
-        f = self.filter
-        assert f is not None
-        x, nv = f.ekf.x, f.nv
-        std = np.sqrt(np.clip(np.diag(f.ekf.P)[:nv], 0.0, None))
-        return f.reference.copy(), x[nv : 2 * nv].copy(), x[2 * nv :].copy(), std, self.force.u
-
-    def _estimate(self, problem: Problem, states: list[tuple[np.ndarray, ...]]) -> Estimate:
-        """The keys' Estimate: a = the forward dynamics' at the state, the impulses of the
-        analytic inverse at (q, v, a)."""
+    def _estimate(self, problem: Problem, i: int) -> Estimate:
+        """Knot i's Estimate, the posterior: a = the forward dynamics' at the state, the
+        impulses of the analytic inverse at (q, v, a)."""
         f, dyn = self.filter, self.dynamics
         assert f is not None and dyn is not None
-        qpos, qvel, bias, std, u = (np.array(a) for a in zip(*states, strict=True))
-        qacc = np.zeros_like(qvel)
-        qfrc = np.zeros_like(qvel)
-        constraints = []
-        for i in range(len(qpos)):
-            f.physics.sensors(qpos[i], qvel[i], u[i])  # (mj_forward)
-            qacc[i] = f.physics.data.qacc
-            inv = dyn.inverse(qpos[i], qvel[i], qacc[i])
-            qfrc[i] = inv.qfrc_inverse
-            constraints.append(inv.constraints)
-        known = np.where(np.isfinite(problem.physics_sigma), u, np.nan)
+        x, nv, u = f.ekf.x, f.nv, self.force.u
+        qpos, qvel, bias = f.reference.copy(), x[nv : 2 * nv].copy(), x[2 * nv :]
+        f.physics.sensors(qpos, qvel, u)  # (mj_forward)
+        qacc = f.physics.data.qacc.copy()
+        inv = dyn.inverse(qpos, qvel, qacc)
         return Estimate(
-            t_ns=problem.t_ns,
+            t_ns=problem.t_ns[i : i + 1],
             h=problem.h,
-            qpos=qpos,
-            qvel=qvel,
-            qacc=qacc,
-            qfrc_inverse=qfrc,
-            qfrc_known=known,
-            qpos_std=std,
-            constraints=tuple(constraints),
+            qpos=qpos[None],
+            qvel=qvel[None],
+            qacc=qacc[None],
+            qfrc_inverse=inv.qfrc_inverse[None],
+            qfrc_known=np.where(np.isfinite(problem.physics_sigma[i]), u, np.nan)[None],
+            qpos_std=np.sqrt(np.clip(np.diag(f.ekf.P)[:nv], 0.0, None))[None],
+            constraints=(inv.constraints,),
             model_name=self.config.model_ref,
-            imu_bias={name: bias[:, problem.bias_of[name]] for name in problem.imu_streams},
+            imu_bias={name: bias[None, problem.bias_of[name]] for name in problem.imu_streams},
         )
 
 

@@ -83,6 +83,7 @@ NEWEST = ("smoother", "filter")  # where a stream's newest estimate comes from (
 # the samples the filter keeps before the key it steps from (each stream's last one before it
 # is kept too: a held command, a pose to interpolate from)
 FILTER_MARGIN_NS = 100_000_000
+FILTER_STALE_PERIODS = 3.0  # (`Stream._stale_ns`)
 
 
 # the process's BLAS, held to one thread while the solver runs beside MuJoCo's threads: on a
@@ -701,7 +702,7 @@ class Stream:
             self._start(newest)
             if self.t0_ns is None:
                 return
-        live = [t for t in tracked.values() if t >= newest - self.stale_ns]
+        live = [t for name, t in tracked.items() if t >= newest - self._stale_ns(name)]
         ready = int((min(live) - self.t0_ns) // self.step_ns)
         if ready <= self.ready_until:
             return
@@ -714,6 +715,19 @@ class Stream:
             )
         self.ready_marks.append((ready, arrival))
         self.ready_until = ready
+
+    def _stale_ns(self, name: str) -> int:
+        """How far a stream may be behind the newest sample before it stops holding knots
+        back: `stale_s`; for the filter, at most FILTER_STALE_PERIODS of the stream's own sample
+        period (its mocap dropping out delays the newest estimate by that, not by stale_s; its
+        samples that come after their key was filtered are the smoother's only)."""
+        if self.job is None:
+            return self.stale_ns
+        t = self.buffers[name].t
+        if len(t) < 2:
+            return self.stale_ns
+        period = (t[-1] - t[0]) / (len(t) - 1)
+        return min(self.stale_ns, int(FILTER_STALE_PERIODS * period))
 
     def _start(self, newest: int) -> None:
         """The grid starts once every mapped stream (commands aside) has a sample, or
@@ -765,38 +779,37 @@ class Stream:
             self.pending = []
         if nf is None or self.ready_until - self.filtered_until < min_knots:
             return
-        start = self.clock()
-        backlog = self.ready_until - self.filtered_until
         keep_from = int(nf.t_ns(self.filtered_until, self.filtered_until + 1)[0]) - FILTER_MARGIN_NS
         for b in self.buffers.values():
             b.trim(keep_from)
         measurements = _as_measurements(self.config, self.buffers, self.bad_counts)
+        # one key at a time, each published as soon as it is done (the caller writes it
+        # before the next is filtered)
+        start = self.clock()
         with BLAS.limit(limits=1, user_api="blas"):
-            est = nf.add(measurements, self.ready_until)
+            for est in nf.steps(measurements, self.ready_until):
+                key = int((est.t_ns[0] - nf.t0_ns) // nf.step_ns)
+                now = self.clock()
+                self.counts.knots_newest += 1
+                self.counts.updates += 1
+                event, self.pending_event = self.pending_event, ""
+                yield Update(
+                    est,
+                    range(1),
+                    range(0),
+                    [now - self._arrival(key, now)],
+                    self.ready_until - key,
+                    now - start,
+                    event,
+                    at_ns=int(est.t_ns[0]),
+                    source="filter",
+                )
+                start = self.clock()
         self.filtered_until = self.ready_until
         if nf.diverged:
             self.filter_divergences += 1
             self.counts.divergences += 1
             self._report(f"{nf.diverged}: the filter restarted from the measurements")
-        if est is None:
-            return
-        first = int((est.t_ns[0] - nf.t0_ns) // nf.step_ns)
-        now = self.clock()
-        latency = [now - self._arrival(first + i, now) for i in range(est.T)]
-        self.counts.knots_newest += est.T
-        self.counts.updates += 1
-        event, self.pending_event = self.pending_event, ""
-        yield Update(
-            est,
-            range(est.T),
-            range(0),
-            latency,
-            backlog,
-            now - start,
-            event,
-            at_ns=int(est.t_ns[-1]),
-            source="filter",
-        )
 
     def _smoothed(self, updates: list[tuple[Update, dict]] | None = None) -> Iterator[Update]:
         """The smoother's updates that came back from its process."""
