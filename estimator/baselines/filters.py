@@ -275,7 +275,9 @@ class Force:
 class Knot:
     """The sensor blocks measured at knot k of their problem: z (m,), σ (m,), and each block's
     rows; key: the knot's index in the whole run (a stream's filter steps through problems of
-    a few knots each)."""
+    a few knots each). The blocks' rows as index arrays, each kind at once: vector rows
+    (`vec_*`: residual row, sensordata row, bias index or −1) and quaternion blocks (`quat_*`:
+    (B, 3) residual rows, (B, 4) sensordata rows, (B, 4) measured quaternions)."""
 
     k: int
     blocks: list[SensorBlock]
@@ -283,10 +285,20 @@ class Knot:
     z: np.ndarray
     sigma: np.ndarray
     key: int
+    vec_out: np.ndarray
+    vec_src: np.ndarray
+    vec_bias: np.ndarray
+    quat_out: np.ndarray
+    quat_src: np.ndarray
+    quat_meas: np.ndarray
 
     @classmethod
     def at(cls, problem: Problem, k: int, key: int | None = None) -> Knot:
         blocks, rows, z, sigma = [], [], [], []
+        vec_out: list[int] = []
+        vec_src: list[int] = []
+        vec_bias: list[int] = []
+        quat_out, quat_src, quat_meas = [], [], []
         start = 0
         for b in (e for block in problem.blocks for e in block.elements()):
             meas = b.values[k]
@@ -295,54 +307,87 @@ class Knot:
             n = 3 if b.kind == "quat" else len(b.rows)
             blocks.append(b)
             rows.append(slice(start, start + n))
-            z.append(np.zeros(3) if b.kind == "quat" else meas)
             sigma.append(b.sigma[k] if b.sigma.ndim == 2 else b.sigma)
+            if b.kind == "quat":
+                z.append(np.zeros(3))
+                quat_out.append(np.arange(start, start + 3))
+                quat_src.append(b.rows)
+                quat_meas.append(meas)
+            else:
+                z.append(meas)
+                vec_out.extend(range(start, start + n))
+                vec_src.extend(b.rows)
+                bias = range(b.bias.start, b.bias.stop) if b.bias is not None else [-1] * n
+                vec_bias.extend(bias)
             start += n
-        key = k if key is None else key
-        if not blocks:
-            return cls(k, [], [], np.zeros(0), np.zeros(0), key)
-        return cls(k, blocks, rows, np.concatenate(z), np.concatenate(sigma), key)
+        ints = lambda v, shape: np.array(v, dtype=int).reshape(shape)  # noqa: E731
+        return cls(
+            k,
+            blocks,
+            rows,
+            np.concatenate(z) if z else np.zeros(0),
+            np.concatenate(sigma) if sigma else np.zeros(0),
+            k if key is None else key,
+            ints(vec_out, -1),
+            ints(vec_src, -1),
+            ints(vec_bias, -1),
+            ints(quat_out, (-1, 3)),
+            ints(quat_src, (-1, 4)),
+            np.array(quat_meas, dtype=float).reshape(-1, 4),
+        )
 
     def predict(self, s: np.ndarray, bias: np.ndarray) -> np.ndarray:
         """(N, m) predicted rows for sensordata s (N, ns) and biases (N, nb)."""
-        out = np.zeros((len(s), len(self.z)))
-        for b, r in zip(self.blocks, self.rows, strict=True):
-            pred = s[:, b.rows]
-            if b.kind == "quat":
-                meas = np.tile(b.values[self.k], (len(s), 1))
-                out[:, r] = quat_errors(pred, meas)[0]
-            else:
-                out[:, r] = pred + (bias[:, b.bias] if b.bias is not None else 0.0)
+        N, B = len(s), len(self.quat_out)
+        out = np.zeros((N, len(self.z)))
+        if len(self.vec_out):
+            biased = self.vec_bias >= 0
+            pred = s[:, self.vec_src]
+            pred[:, biased] += bias[:, self.vec_bias[biased]]
+            out[:, self.vec_out] = pred
+        if B:
+            pred = s[:, self.quat_src].reshape(N * B, 4)
+            meas = np.broadcast_to(self.quat_meas, (N, B, 4)).reshape(N * B, 4)
+            out[:, self.quat_out] = quat_errors(pred, meas)[0].reshape(N, B, 3)
         return out
 
     def jacobian(self, s: np.ndarray, ds: np.ndarray) -> np.ndarray:
         """(m, c) ∂rows/∂y from sensordata s (ns,) and ∂s/∂y (ns, c) (biases not included)."""
         out = np.zeros((len(self.z), ds.shape[1]))
-        for b, r in zip(self.blocks, self.rows, strict=True):
-            if b.kind == "quat":
-                _, de_dp = quat_errors(s[None, b.rows], b.values[self.k][None])
-                out[r] = de_dp[0] @ ds[b.rows]
-            else:
-                out[r] = ds[b.rows]
+        out[self.vec_out] = ds[self.vec_src]
+        if len(self.quat_out):
+            _, de_dp = quat_errors(s[self.quat_src], self.quat_meas)  # (B, 3, 4)
+            out[self.quat_out] = np.einsum("bij,bjc->bic", de_dp, ds[self.quat_src])
         return out
 
     def bias_jacobian(self, nb: int) -> np.ndarray:
         """(m, nb) ∂rows/∂b."""
         out = np.zeros((len(self.z), nb))
-        for b, r in zip(self.blocks, self.rows, strict=True):
-            if b.bias is not None:
-                out[r, b.bias] = np.eye(r.stop - r.start)
+        biased = self.vec_bias >= 0
+        out[self.vec_out[biased], self.vec_bias[biased]] = 1.0
         return out
 
     def gate(self, y: np.ndarray, S: np.ndarray, accept: set[str]) -> tuple[np.ndarray, set[str]]:
         """Rows of the blocks whose innovation y (m,) with covariance S (m, m) passes the
-        chi-square test (or whose stream is in `accept`), and the streams rejected."""
+        chi-square test (or whose stream is in `accept`), and the streams rejected. Blocks of
+        one size at once: d² = yᵀ S_bb⁻¹ y per block."""
+        passed = np.zeros(len(self.blocks), dtype=bool)
+        sizes = np.array([r.stop - r.start for r in self.rows], dtype=int)
+        starts = np.array([r.start for r in self.rows], dtype=int)
+        for n in np.unique(sizes):
+            which = np.flatnonzero(sizes == n)
+            idx = starts[which, None] + np.arange(n)  # (Bn, n)
+            yb = y[idx]
+            d2 = np.einsum(
+                "bi,bi->b",
+                yb,
+                np.linalg.solve(S[idx[:, :, None], idx[:, None, :]], yb[..., None])[..., 0],
+            )
+            passed[which] = d2 <= _gate_threshold(int(n))
         keep: list[int] = []
         rejected: set[str] = set()
-        for b, r in zip(self.blocks, self.rows, strict=True):
-            n = r.stop - r.start
-            d2 = float(y[r] @ np.linalg.solve(S[r, r], y[r]))
-            if b.stream in accept or d2 <= _gate_threshold(n):
+        for b, r, ok in zip(self.blocks, self.rows, passed, strict=True):
+            if b.stream in accept or ok:
                 keep.extend(range(r.start, r.stop))
             else:
                 rejected.add(b.stream)
