@@ -276,6 +276,7 @@ class SmootherJob:
         threading.Thread(target=self._write, daemon=True).start()
         threading.Thread(target=self._read, daemon=True).start()
         self.done = False
+        self.failure = ""  # why the process ended before it was closed
 
     def send(self, item: tuple[str, Any]) -> None:
         self.outbox.put(item)
@@ -325,7 +326,7 @@ class SmootherJob:
             elif kind in ("done", "ended", "error"):
                 self.done = True
                 if kind != "done":
-                    raise LogError(f"the stream's smoother: {payload}")
+                    self.failure = str(payload)
         return out
 
     def finish(self, timeout_s: float = 600.0) -> list[tuple[Update, dict]]:
@@ -498,6 +499,7 @@ class Stream:
         self.filter: NewestFilter | None = None
         self.filtered_until = -1  # the newest key the filter published
         self.filter_divergences = 0
+        self.smoother_failed = False
         self.pending: list[tuple[Sample, float]] = []  # samples not yet sent to the job
         self.job_counts: dict[str, int] = {}
         if diagnose is not None and self.job is None:
@@ -812,9 +814,18 @@ class Stream:
             self._report(f"{nf.diverged}: the filter restarted from the measurements")
 
     def _smoothed(self, updates: list[tuple[Update, dict]] | None = None) -> Iterator[Update]:
-        """The smoother's updates that came back from its process."""
-        assert self.job is not None
-        for update, counts in self.job.results() if updates is None else updates:
+        """The smoother's updates that came back from its process (one that failed: a line,
+        and the newest estimate goes on)."""
+        job = self.job
+        assert job is not None
+        back = job.results() if updates is None else updates
+        if job.failure and not self.smoother_failed:
+            self.smoother_failed = True
+            self._report(
+                f"the smoother stopped ({job.failure}): the newest estimate goes on, nothing "
+                "more is smoothed"
+            )
+        for update, counts in back:
             c = self.counts
             c.knots_smoothed += len(update.smoothed)
             c.updates += 1

@@ -258,6 +258,25 @@ def test_newest_from_the_filter_smoothed_from_the_smoothers_process():
     assert joint_error(newest, "newest") < 0.02
 
 
+def test_a_smoother_process_that_dies_leaves_the_newest_estimate_going():
+    config = load_config(CONFIG)
+    settings = replace(Settings.from_config(config), max_iterations=2, fit_softness="none")
+    stream = Stream(config, settings, lag_s=0.5, newest="filter")
+    stream.wait_ready()
+    messages = list(open_log(LOG))
+    for i, raw in enumerate(messages):
+        stream.push(raw)
+        list(stream.update())
+        if i == len(messages) // 3:
+            assert stream.job is not None
+            stream.job.process.kill()
+    list(stream.close())
+    lines = [e for e in stream.counts.events if "the smoother stopped" in e]
+    assert len(lines) == 1 and "the newest estimate goes on" in lines[0], stream.counts.events
+    assert stream.counts.knots_newest >= round(3.0 / stream.h) - 3
+    assert 0 < stream.counts.knots_smoothed < stream.counts.knots_newest / 2
+
+
 def test_a_source_that_is_not_there_is_one_line(tmp_path):
     node = stream("tcp://127.0.0.1:1", tmp_path / "x.mcap", "--reconnect", "0.3", "--quiet")
     _, err = node.communicate(timeout=120)
