@@ -79,7 +79,7 @@ def samples_between_knots(
 
 
 def averaged_at_knots(
-    m: Measurement, t_ns: np.ndarray, stage: str, late_ns: int = 0
+    m: Measurement, t_ns: np.ndarray, stage: str, late_ns: int = 0, h_ns: int | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """(T, E, K) mean of the samples each knot stands for and (T, E, K) their counts.
 
@@ -89,9 +89,11 @@ def averaged_at_knots(
     mean rate over it; gyro); "acc": [t_k, t_k + h), the step over which qacc_k acts
     (accelerometer, force/torque). late_ns shifts the bins: a sample stamped up to late_ns
     after t_k still belongs to knot k (a stream sampled on the knots' own clock, whose stamps
-    jitter around the knot times).
+    jitter around the knot times). h_ns: the knot step (default: the grid's own; a grid of one
+    knot, a stream's filter stepping key by key, has none).
     """
-    h_ns = int(t_ns[1] - t_ns[0]) if len(t_ns) > 1 else 1
+    if h_ns is None:
+        h_ns = int(t_ns[1] - t_ns[0]) if len(t_ns) > 1 else 1
     if late_ns:
         m = replace(m, t_ns=m.t_ns - late_ns)
     if stage == "vel":

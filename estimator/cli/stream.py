@@ -37,7 +37,7 @@ from estimator.config import load_config
 from estimator.diagnose.detect import DetectorSettings
 from estimator.diagnose.report import event_dict, message, write_event
 from estimator.errors import ConfigError, LogError
-from estimator.io.live import DecodingReader, McapStreamServer, check_source
+from estimator.io.live import DecodingReader, McapStreamServer, RawReader, check_source
 from estimator.io.logs.measurements import BadSampleCounts
 from estimator.io.mcap_writer import EstimateWriter
 from estimator.model_checks import check_for_estimate
@@ -218,7 +218,12 @@ def run(args: argparse.Namespace) -> int:
         )
     status = Status(args.quiet)
     stream.wait_ready()  # (the smoother's process up before the source is read)
-    reader = DecodingReader(args.config, args.source, args.reconnect)
+    # (the filter's process decodes for itself; the smoother's node in a process of its own)
+    reader: RawReader | DecodingReader = (
+        RawReader({s.topic for s in config.streams.values()}, args.source, args.reconnect)
+        if stream.job is not None
+        else DecodingReader(args.config, args.source, args.reconnect)
+    )
     previous = signal.signal(signal.SIGTERM, _interrupt)
     interrupted = False
     later: deque[Update] = deque()  # smoothed knots to write between the newest ones
@@ -287,7 +292,14 @@ def _drain(inbox: Any, stream: Stream, status: Status, wait: bool = True) -> boo
         kind = item[0]
         if kind == "end":
             return True
-        if kind == "samples":
+        if kind == "raw":  # (RawReader: decoded here)
+            samples = stream.decode(item[1])
+            for sample in samples:
+                stream.push_sample(sample, item[2])
+            status.received += bool(samples)
+            status.messages = stream.counts.messages
+            status.decoded_here = True
+        elif kind == "samples":
             for sample in item[1]:
                 stream.push_sample(sample, item[2])
             status.received += 1
@@ -373,6 +385,7 @@ class Status:
         self.received = 0  # messages with samples
         self.messages = 0  # every message read
         self.bad: dict[str, BadSampleCounts] = {}  # skipped, per stream (the decoder's)
+        self.decoded_here = False  # (RawReader: the stream's own counts)
         self.latency: list[float] = []
         self.backlog: list[int] = []
         self.solve: list[float] = []
@@ -419,6 +432,8 @@ class Status:
         self.last_shown = now
         c = stream.counts
         wall = max(now - self.start, 1e-9)
+        if self.decoded_here:
+            self.bad = dict(stream.bad_counts)
         bad = sum(b.total for b in self.bad.values())
         p50, p99 = (np.percentile(self.recent, (50, 99)) * 1e3) if self.recent else (np.nan,) * 2
         line = (
@@ -446,7 +461,10 @@ class Status:
             "smoother_solve_s": self.smoother_solve,
             "relinearized": self.relinearized,
             "counts": asdict(stream.counts),
-            "bad": {name: b.as_dict() for name, b in self.bad.items()},
+            "bad": {
+                name: b.as_dict()
+                for name, b in (stream.bad_counts if self.decoded_here else self.bad).items()
+            },
             "knot_s": stream.h,
             "events": self.events,
             "softness_fit": stream.softness_fit,  # (empty: none applied)

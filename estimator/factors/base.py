@@ -116,6 +116,11 @@ class Grid:
     def T(self) -> int:
         return len(self.t_ns)
 
+    @property
+    def h_ns(self) -> int:
+        """The knot step, ns (the model's timestep is the knots')."""
+        return round(self.model.opt.timestep * 1e9)
+
     def position_slots(self, m: Measurement) -> list[tuple[np.ndarray, np.ndarray | None]]:
         """A position-stage stream's values (T, E, K) on the knots by slot, with α (or None)."""
         if self.at_sample_times:

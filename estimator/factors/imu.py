@@ -41,8 +41,8 @@ def factors(
 ) -> StreamFactors:
     noise, settings = stream.noise, grid.settings
     m = without_saturated(m, stream)
-    accel, accel_counts = averaged_at_knots(m, grid.t_ns, "acc")
-    gyro, gyro_counts = averaged_at_knots(m, grid.t_ns, "vel")
+    accel, accel_counts = averaged_at_knots(m, grid.t_ns, "acc", h_ns=grid.h_ns)
+    gyro, gyro_counts = averaged_at_knots(m, grid.t_ns, "vel", h_ns=grid.h_ns)
     blocks = biased_pair(
         stream.name,
         rows,

@@ -61,7 +61,7 @@ def factors(
         # an encoder often samples on the controller's clock, as the knots do: a stamp a
         # little after t_k is knot k's velocity, not the next step's
         late_ns = int(_LATE * (grid.t_ns[1] - grid.t_ns[0])) if grid.T > 1 else 0
-        mean, counts = averaged_at_knots(m, grid.t_ns, "vel", late_ns)
+        mean, counts = averaged_at_knots(m, grid.t_ns, "vel", late_ns, grid.h_ns)
         out.blocks.append(
             SensorBlock(
                 stream.name,

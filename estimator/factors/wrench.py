@@ -32,7 +32,7 @@ def factors(
     stream: StreamConfig, m: Measurement, rows: list[np.ndarray], grid: Grid
 ) -> StreamFactors:
     noise = stream.noise
-    wrench, counts = averaged_at_knots(m, grid.t_ns, "acc")
+    wrench, counts = averaged_at_knots(m, grid.t_ns, "acc", h_ns=grid.h_ns)
     blocks = biased_pair(
         stream.name,
         rows,

@@ -20,6 +20,7 @@ import contextlib
 import io
 import multiprocessing
 import os
+import queue
 import signal
 import socket
 import sys
@@ -172,6 +173,50 @@ def _tcp(
             return
         log(f"source {spec}: disconnected mid-stream; reconnecting")
         retry.lost()
+
+
+class RawReader:
+    """A live source read on a thread of the node's process, its messages left for the node
+    to decode (`Stream.push`): where the node's process runs only the filter
+    (`stream --newest filter`), decoding there costs less than the process of
+    `DecodingReader` and its queue. Items on `queue`, in order:
+
+        ("raw", RawMessage, arrival)   one message as it arrived
+        ("log", line)                  a source event (connected, cut off, ...)
+        ("error", line)                the source cannot be read (then "end")
+        ("end",)
+    """
+
+    def __init__(self, topics: Collection[str], source: str, reconnect_s: float) -> None:
+        self.queue: queue.Queue[tuple] = queue.Queue()
+        self.stop = threading.Event()
+        self.thread = threading.Thread(
+            target=self._read, args=(list(topics), source, reconnect_s), daemon=True
+        )
+        self.thread.start()
+
+    def _read(self, topics: list[str], source: str, reconnect_s: float) -> None:
+        out = self.queue
+        try:
+            for raw, arrival in messages(
+                source,
+                self.stop,
+                reconnect_s,
+                log=lambda line: out.put(("log", line)),
+                topics=topics,
+            ):
+                out.put(("raw", raw, arrival))
+        except LogError as err:
+            out.put(("error", str(err)))
+        except OSError as err:
+            where = f"{err.filename}: " if err.filename else ""
+            out.put(("error", f"{where}{err.strerror or err}"))
+        finally:
+            out.put(("end",))
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(timeout=1.0)  # (a thread blocked on a quiet source: it is a daemon)
 
 
 class DecodingReader:
