@@ -2,8 +2,8 @@
 through a real TCP socket (`physfuse replay` → `physfuse stream`, two processes on loopback).
 
     .venv/bin/python benchmarks/stream_latency.py [--recordings humanoid_push quadruped_trot]
-        [--newest filter smoother] [--lag 0.5] [--iterations 2 ...] [--relinearize 0.04 0 ...]
-        [--out DIR]
+        [--newest filter smoother] [--rate 1] [--lag 0.5] [--iterations 2 ...]
+        [--relinearize 0.04 0 ...] [--out DIR]
 
 Per recording and node setting: the latency (from the arrival of the sample that made a knot
 ready to the publication of its newest estimate) p50 / p99 / max; the backlog (knots ready
@@ -145,6 +145,13 @@ def main() -> None:
     parser.add_argument("--recordings", nargs="+", default=["humanoid_push", "quadruped_trot"])
     parser.add_argument("--lag", type=float, default=0.5)
     parser.add_argument(
+        "--rate",
+        type=float,
+        default=1.0,
+        help="the replay's pace for the latency rows (1: real time; 0.5: half, a node with "
+        "spare CPU)",
+    )
+    parser.add_argument(
         "--iterations",
         type=int,
         nargs="+",
@@ -180,7 +187,7 @@ def main() -> None:
             for w in args.newest
         ]
         for name, iterations, relinearize, newest in runs:
-            live = streamed(name, 1.0, args.lag, iterations, relinearize, newest, work)
+            live = streamed(name, args.rate, args.lag, iterations, relinearize, newest, work)
             fast = streamed(name, 0.0, args.lag, iterations, relinearize, newest, work)
             s = live["stats"]
             lat = np.array(s["latency_s"]) * 1e3
@@ -244,6 +251,7 @@ def main() -> None:
             f"{j[0]:9.5f} {j[1]:9.5f} {j[2]:9.5f}"
         )
     report = {
+        "rate": args.rate,
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
         "python": platform.python_version(),
         "lag_s": args.lag,

@@ -80,6 +80,20 @@ BACKLOG_STEP = 0.5
 
 NEWEST = ("smoother", "filter")  # where a stream's newest estimate comes from (`Stream`)
 
+# the filter runs beside the smoother's process and the source's reader: on this project's
+# 2-core machines the two together did not keep up with quadruped_trot's 200 knots/s at its
+# real rate (docs/streaming.md); where the node has cores to spare it publishes each knot in
+# a few ms. The bound is a judgment, not measured (no machine here has 3 or 4 cores)
+FILTER_CORES = 4
+
+
+def newest_from(choice: str) -> str:
+    """`stream --newest auto`: the filter where the machine has FILTER_CORES cores or more."""
+    if choice != "auto":
+        return choice
+    return "filter" if (os.cpu_count() or 1) >= FILTER_CORES else "smoother"
+
+
 # the samples the filter keeps before the key it steps from (each stream's last one before it
 # is kept too: a held command, a pose to interpolate from)
 FILTER_MARGIN_NS = 100_000_000

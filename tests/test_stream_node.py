@@ -62,6 +62,8 @@ def test_a_recording_replayed_over_tcp_is_estimated_as_it_arrives(tmp_path, batc
         "--diagnose",
         "--fit-softness",
         "none",
+        "--newest",
+        "filter",
     )
     _, err = node.communicate(timeout=300)
     replayer.wait(timeout=30)

@@ -43,7 +43,7 @@ from estimator.io.mcap_writer import EstimateWriter
 from estimator.model_checks import check_for_estimate
 from estimator.settings import Settings
 from estimator.solver.incremental import RELINEARIZE_S
-from estimator.stream import NEWEST, Stream, Update
+from estimator.stream import FILTER_CORES, NEWEST, Stream, Update, newest_from
 
 STATUS_EVERY_S = 1.0
 SMOOTHED_PREFIX = "/estimate_smoothed"
@@ -88,11 +88,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--newest",
-        choices=NEWEST,
-        default="filter",
+        choices=("auto", *NEWEST),
+        default="auto",
         help="where the newest estimate of each knot comes from: filter (an EKF step as soon as "
-        "the knot is ready, the smoother in a process of its own; default) or smoother (each "
-        "update of the fixed-lag smoother publishes its newest knots)",
+        "the knot is ready, the smoother in a process of its own), smoother (each update of the "
+        f"fixed-lag smoother publishes its newest knots) or auto (default: filter on a machine "
+        f"with {FILTER_CORES} cores or more, else smoother)",
     )
     parser.add_argument(
         "--iterations",
@@ -182,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
         stale_s=args.stale,
         diagnose=detector if args.diagnose else None,
         relinearize_s=args.relinearize,
-        newest=args.newest,
+        newest=newest_from(args.newest),
     )
     model = config.load_model()
     imu_sites = {s.name: s.elements[0] for s in config.streams.values() if s.kind == "imu"}
