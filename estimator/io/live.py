@@ -175,6 +175,14 @@ def _tcp(
         retry.lost()
 
 
+def source_error(err: LogError | OSError) -> str:
+    """The one line a reader reports for a source it cannot read."""
+    if isinstance(err, LogError):
+        return str(err)
+    where = f"{err.filename}: " if err.filename else ""
+    return f"{where}{err.strerror or err}"
+
+
 class RawReader:
     """A live source read on a thread of the node's process, its messages left for the node
     to decode (`Stream.push`): where the node's process runs only the filter
@@ -206,11 +214,8 @@ class RawReader:
                 topics=topics,
             ):
                 out.put(("raw", raw, arrival))
-        except LogError as err:
-            out.put(("error", str(err)))
-        except OSError as err:
-            where = f"{err.filename}: " if err.filename else ""
-            out.put(("error", f"{where}{err.strerror or err}"))
+        except (LogError, OSError) as err:
+            out.put(("error", source_error(err)))
         finally:
             out.put(("end",))
 
@@ -291,11 +296,8 @@ def _decode(
                 if os.getppid() != parent:  # the node is gone
                     return
         out.put(("samples", extractor.flush(), time.perf_counter()))
-    except LogError as err:
-        out.put(("error", str(err)))
-    except OSError as err:
-        where = f"{err.filename}: " if err.filename else ""
-        out.put(("error", f"{where}{err.strerror or err}"))
+    except (LogError, OSError) as err:
+        out.put(("error", source_error(err)))
     finally:
         out.put(("counts", count, extractor.bad_counts()))
         out.put(("end",))
