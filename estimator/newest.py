@@ -64,9 +64,11 @@ class NewestFilter:
         self.key = -1  # the newest key filtered
         self.force = Force(np.zeros(0), np.zeros(0))  # the newest key's
         self.at: Linearization | None = None  # the physics at its prior
-        self.bound = np.zeros(0)  # σ_f of a dof with no known force (`force_bound`)
-        self.dynamics: Dynamics | None = None
-        self.data: mujoco.MjData | None = None
+        # (made now, not at the first key)
+        model = self.builder.model
+        self.bound = force_bound(model)  # σ_f of a dof with no known force
+        self.dynamics: Dynamics = make_dynamics(model, "native")
+        self.data = mujoco.MjData(model)
         self.diverged = ""  # why the last `add` restarted the filter
 
     def t_ns(self, start: int, stop: int) -> np.ndarray:
@@ -115,9 +117,6 @@ class NewestFilter:
         measured = np.zeros((2, model.nq), dtype=bool)
         qpos0 = initial_trajectory(model, measurements, problem.t_ns, measured_out=measured)
         self.filter = Filter(problem, qpos0, "ekf", held_at_start(model, measured, problem.h))
-        self.bound = force_bound(model)
-        self.dynamics = make_dynamics(model, "native")
-        self.data = mujoco.MjData(model)
         f = self.filter
         self._linearize(problem, 0)
         f.ekf_update(Knot.at(problem, 0, key), self.force, self.at)
@@ -128,7 +127,7 @@ class NewestFilter:
         """At the prior of knot i: the force u_i and σ_f² (the commands through the actuators
         at the state), and the physics linearized once, for this update and the next step."""
         f, data = self.filter, self.data
-        assert f is not None and data is not None
+        assert f is not None
         q, v = f.chart.qpos(f.reference, f.ekf.x), f.ekf.x[f.nv : 2 * f.nv]
         data.qpos[:], data.qvel[:] = q, v
         mujoco.mj_fwdPosition(problem.model, data)
@@ -143,7 +142,7 @@ class NewestFilter:
         """Knot i's Estimate, the posterior: a = the forward dynamics' at the state, the
         impulses of the analytic inverse at (q, v, a)."""
         f, dyn = self.filter, self.dynamics
-        assert f is not None and dyn is not None
+        assert f is not None
         x, nv, u = f.ekf.x, f.nv, self.force.u
         qpos, qvel, bias = f.reference.copy(), x[nv : 2 * nv].copy(), x[2 * nv :]
         f.physics.sensors(qpos, qvel, u)  # (mj_forward)

@@ -644,6 +644,10 @@ class EstimateWriter:
             "physfuse.estimate", {"model": model_name, "h": repr(h), "run_id": run_id}
         )
         self.message_count = 0
+        # the encoders planned now, not at the first knot (0.4 s: a stream's first knots
+        # waited for it)
+        for msg_type in {*self.layout.topics("").values(), ACCEL_STAMPED}:
+            cdr_encoder(msg_type)
 
     def write(
         self,
