@@ -162,8 +162,9 @@ def commanded_force(
 
 def _joint_force_ranges(model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The dofs of the hinge and slide joints with an actuatorfrcrange, and its ends."""
-    scalar = (model.jnt_type == mujoco.mjtJoint.mjJNT_HINGE) | (
-        model.jnt_type == mujoco.mjtJoint.mjJNT_SLIDE
+    # (against the enums' ints: `commanded_forces`)
+    scalar = (model.jnt_type == mujoco.mjtJoint.mjJNT_HINGE.value) | (
+        model.jnt_type == mujoco.mjtJoint.mjJNT_SLIDE.value
     )
     joints = np.flatnonzero(model.jnt_actfrclimited.astype(bool) & scalar)
     return (
